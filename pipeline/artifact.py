@@ -1,0 +1,271 @@
+"""Reading and writing one HDF5 artifact (imports h5py; not on the no-op path).
+
+Datasets are numeric arrays or lists of strings, never pickled objects. Nested
+mappings become groups ("model/encoder.weight"). Streamed datasets grow along axis 0
+in chunks, so a node making thousands of frames never holds them all.
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any, Iterator, Mapping
+
+import h5py
+import numpy as np
+
+from pipeline.errors import PipelineError
+from pipeline.hashing import ContentDigest
+
+COMPRESS_MIN_BYTES = 1 << 16
+CHUNK_BYTES = 1 << 20
+READ_BLOCK_BYTES = 1 << 24
+_STR = h5py.string_dtype("utf-8")
+
+
+def _as_array(name: str, value: Any) -> np.ndarray:
+    if isinstance(value, np.ndarray):
+        arr = value
+    elif hasattr(value, "detach") and hasattr(value, "numpy"):  # a torch tensor
+        arr = value.detach().cpu().numpy()
+    else:
+        arr = np.asarray(value)
+    if arr.dtype.kind == "U" or (arr.dtype.kind == "O" and all(isinstance(s, str) for s in arr.ravel())):
+        return arr.astype(object)
+    if arr.dtype.kind not in "biufc":
+        raise PipelineError(f"dataset '{name}': unsupported dtype {arr.dtype} "
+                            "(numbers or strings only; the store holds no pickles)")
+    return arr if arr.flags.c_contiguous else arr.copy(order="C")
+
+
+def _plain_attr(name: str, value: Any) -> Any:
+    """What an attribute reads back as, so that write- and verify-time digests agree."""
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, (list, tuple, np.ndarray)):
+        arr = np.asarray(value)
+        if arr.dtype.kind in "biuf" and arr.ndim == 1:
+            return arr.tolist()
+    try:
+        return json.dumps(value, sort_keys=True)
+    except TypeError:
+        raise PipelineError(f"attribute '{name}': cannot store {type(value).__name__}") from None
+
+
+class ArtifactWriter:
+    """Collects datasets (whole or appended) and attributes; commit() publishes atomically."""
+
+    def __init__(self, store, key: str, tmp: Path, provenance: dict[str, Any]):
+        self.store, self.key, self.tmp = store, key, tmp
+        self.provenance = dict(provenance)
+        self.file = h5py.File(tmp, "w")
+        self.digest = ContentDigest()
+        self.attrs: dict[str, Any] = {}
+        self.metrics: dict[str, float] = {}
+        self._streams: dict[str, h5py.Dataset] = {}
+        self._whole: set[str] = set()
+        self._t0 = time.time()
+
+    def put(self, name: str, value: Any) -> None:
+        if name in self._streams or name in self._whole:
+            raise PipelineError(f"dataset '{name}' written twice")
+        arr = _as_array(name, value)
+        if arr.dtype.kind == "O":
+            self.file.create_dataset(name, data=arr, dtype=_STR)
+        elif arr.ndim and arr.nbytes >= COMPRESS_MIN_BYTES:
+            self.file.create_dataset(name, data=arr, compression="lzf", chunks=True)
+        else:
+            self.file.create_dataset(name, data=arr)
+        self.digest.update_whole(name, arr)
+        self._whole.add(name)
+
+    def append(self, name: str, chunk: Any) -> None:
+        if name in self._whole:
+            raise PipelineError(f"dataset '{name}' written whole and then appended to")
+        arr = _as_array(name, chunk)
+        if arr.ndim == 0 or arr.dtype.kind == "O":
+            raise PipelineError(f"dataset '{name}': appended chunks must be numeric arrays with a frame axis")
+        ds = self._streams.get(name)
+        if ds is None:
+            row = max(1, arr[0:1].nbytes)
+            rows = max(1, min(4096, CHUNK_BYTES // row))
+            ds = self.file.create_dataset(name, shape=(0, *arr.shape[1:]), maxshape=(None, *arr.shape[1:]),
+                                          dtype=arr.dtype, chunks=(rows, *arr.shape[1:]), compression="lzf")
+            self._streams[name] = ds
+        elif ds.dtype != arr.dtype or ds.shape[1:] != arr.shape[1:]:
+            raise PipelineError(f"dataset '{name}': chunk {arr.dtype}{arr.shape[1:]} does not match "
+                                f"earlier chunks {ds.dtype}{ds.shape[1:]}")
+        n = ds.shape[0]
+        ds.resize(n + arr.shape[0], axis=0)
+        ds[n:] = arr
+        self.digest.update(name, arr, dtype=arr.dtype.str, shape_tail=arr.shape[1:])
+
+    def set_attrs(self, attrs: Mapping[str, Any]) -> None:
+        for k, v in attrs.items():
+            if k.startswith("pipeline."):
+                raise PipelineError(f"attribute name '{k}' is reserved")
+            self.attrs[k] = _plain_attr(k, v)
+
+    def commit(self) -> dict:
+        for name in self._streams:  # an empty stream is still a dataset
+            if name not in self.digest._datasets:
+                ds = self._streams[name]
+                self.digest.update(name, np.empty((0, *ds.shape[1:]), ds.dtype),
+                                   dtype=ds.dtype.str, shape_tail=ds.shape[1:])
+        digest = self.digest.hexdigest({"attrs": self.attrs, "metrics": self.metrics})
+        seconds = round(time.time() - self._t0 + self.provenance.pop("setup_seconds", 0.0), 4)
+        prov = {**self.provenance, "digest": digest, "seconds": seconds,
+                "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                "metrics": self.metrics}
+        for k, v in self.attrs.items():
+            self.file.attrs[k] = v
+        for k, v in prov.items():
+            self.file.attrs[f"pipeline.{k}"] = v if isinstance(v, (str, int, float)) else json.dumps(v)
+        self.file.flush()
+        self.file.close()
+        record = {k: prov.get(k) for k in ("key", "digest", "node", "instance", "created",
+                                             "seconds", "metrics", "inputs")}
+        return self.store._publish(self.key, self.tmp, record)
+
+    def abort(self) -> None:
+        try:
+            self.file.close()
+        finally:
+            self.tmp.unlink(missing_ok=True)
+
+
+class LazyArray:
+    """An HDF5 dataset that reads only what is sliced; np.asarray() reads it all."""
+
+    def __init__(self, ds: h5py.Dataset):
+        self._ds = ds
+        self.shape, self.dtype, self.ndim = ds.shape, ds.dtype, ds.ndim
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, item):
+        out = self._ds[item]
+        return out.astype(str) if self._ds.dtype.kind == "O" else out
+
+    def __array__(self, dtype=None, copy=None):
+        arr = self[()]
+        return arr.astype(dtype) if dtype is not None else arr
+
+    def iter_chunks(self, rows: int) -> Iterator[np.ndarray]:
+        for i in range(0, self.shape[0], rows):
+            yield self._ds[i:i + rows]
+
+
+class Artifact(Mapping):
+    """Read-only view of an artifact: a mapping of dataset name -> LazyArray."""
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+        try:
+            self._file = h5py.File(self.path, "r")
+        except OSError as exc:
+            raise PipelineError(f"cannot open artifact {self.path}: {exc}") from None
+        self._names = _dataset_names(self._file)
+
+    def __getitem__(self, name: str) -> LazyArray:
+        if name not in self._names:
+            raise KeyError(f"{name!r} not in artifact {self.path.name} (has {sorted(self._names)})")
+        return LazyArray(self._file[name])
+
+    def __iter__(self):
+        return iter(self._names)
+
+    def __len__(self) -> int:
+        return len(self._names)
+
+    @property
+    def attrs(self) -> dict[str, Any]:
+        return {k: _read_attr(v) for k, v in self._file.attrs.items() if not k.startswith("pipeline.")}
+
+    @property
+    def provenance(self) -> dict[str, Any]:
+        out = {}
+        for k, v in self._file.attrs.items():
+            if k.startswith("pipeline."):
+                v = _read_attr(v)
+                if isinstance(v, str) and v[:1] in "{[":
+                    v = json.loads(v)
+                out[k[len("pipeline."):]] = v
+        return out
+
+    @property
+    def metrics(self) -> dict[str, float]:
+        return self.provenance.get("metrics", {})
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def _read_attr(v: Any) -> Any:
+    if isinstance(v, bytes):
+        return v.decode()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+def _dataset_names(f: h5py.File) -> list[str]:
+    names: list[str] = []
+    f.visititems(lambda n, o: names.append(n) if isinstance(o, h5py.Dataset) else None)
+    return sorted(names)
+
+
+def content_digest(f: h5py.File) -> str:
+    d = ContentDigest()
+    for name in _dataset_names(f):
+        ds = f[name]
+        if ds.dtype.kind == "O" or ds.ndim == 0:
+            arr = ds[()]
+            arr = np.asarray(arr if ds.dtype.kind != "O" else ds.asstr()[()], dtype=None if ds.dtype.kind != "O" else object)
+            d.update_whole(name, arr)
+            continue
+        row = max(1, int(np.prod(ds.shape[1:], dtype=np.int64)) * ds.dtype.itemsize)
+        step = max(1, READ_BLOCK_BYTES // row)
+        if ds.shape[0] == 0:
+            d.update(name, np.empty(ds.shape, ds.dtype), dtype=ds.dtype.str, shape_tail=ds.shape[1:])
+        for i in range(0, ds.shape[0], step):
+            block = np.ascontiguousarray(ds[i:i + step])
+            d.update(name, block, dtype=ds.dtype.str, shape_tail=ds.shape[1:])
+    attrs = {k: _read_attr(v) for k, v in f.attrs.items() if not k.startswith("pipeline.")}
+    metrics = json.loads(_read_attr(f.attrs.get("pipeline.metrics", "{}")))
+    return d.hexdigest({"attrs": attrs, "metrics": metrics})
+
+
+def verify_file(path: Path) -> tuple[bool, str]:
+    """(ok, message): re-digest the content and compare with the stored digest."""
+    try:
+        with h5py.File(path, "r") as f:
+            stored = _read_attr(f.attrs.get("pipeline.digest", ""))
+            if not stored:
+                return False, "no content digest (incomplete artifact)"
+            actual = content_digest(f)
+    except Exception as exc:  # h5py raises OSError/KeyError/RuntimeError on damaged files
+        return False, f"unreadable: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
+    if actual != stored:
+        return False, f"content digest {actual[:12]} != recorded {stored[:12]}"
+    return True, "ok"
+
+
+def read_record(path: Path) -> dict:
+    with Artifact(path) as a:
+        prov = a.provenance
+    rec = {k: prov.get(k) for k in ("key", "digest", "node", "instance", "created",
+                                      "seconds", "metrics", "inputs", "host")}
+    return rec

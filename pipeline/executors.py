@@ -1,0 +1,97 @@
+"""Executors: where tasks run. All share submit / wait / close.
+
+inline   in this process, one at a time (default; best for debugging)
+process  a local pool of spawned processes (never forked: h5py state must not be copied)
+dask     a dask.distributed cluster (--address tcp://...), or a LocalCluster when no address
+"""
+from __future__ import annotations
+
+import concurrent.futures as cf
+from typing import Callable
+
+from pipeline.errors import PipelineError
+
+
+class InlineExecutor:
+    name = "inline"
+
+    def submit(self, fn: Callable, task: dict):
+        fut: cf.Future = cf.Future()
+        try:
+            fut.set_result(fn(task))
+        except BaseException as exc:  # noqa: BLE001 - re-raised by result()
+            fut.set_exception(exc)
+        return fut
+
+    def wait(self, futures):
+        return set(futures)
+
+    def result(self, fut):
+        return fut.result()
+
+    def close(self):
+        pass
+
+
+class ProcessExecutor(InlineExecutor):
+    name = "process"
+
+    def __init__(self, jobs: int):
+        import multiprocessing as mp
+        self.pool = cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"))
+
+    def submit(self, fn, task):
+        return self.pool.submit(fn, task)
+
+    def wait(self, futures):
+        done, _ = cf.wait(futures, return_when=cf.FIRST_COMPLETED)
+        return done
+
+    def close(self):
+        self.pool.shutdown(wait=True, cancel_futures=True)
+
+
+class DaskExecutor(InlineExecutor):
+    name = "dask"
+
+    def __init__(self, address: str | None, jobs: int):
+        try:
+            from distributed import Client, LocalCluster
+        except ImportError:
+            raise PipelineError("the dask executor needs dask.distributed (pip install 'dask[distributed]')") from None
+        self._cluster = None
+        try:
+            if address:
+                self.client = Client(address, timeout="10s")
+            else:
+                self._cluster = LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True,
+                                             dashboard_address=None)
+                self.client = Client(self._cluster)
+        except (OSError, TimeoutError) as exc:
+            raise PipelineError(f"cannot reach Dask scheduler at {address}: {exc}") from None
+
+    def submit(self, fn, task):
+        return self.client.submit(fn, task, pure=False, key=f"{task['instance']}-{task['key'][:8]}")
+
+    def wait(self, futures):
+        from distributed import wait
+        done, _ = wait(list(futures), return_when="FIRST_COMPLETED")
+        return set(done)
+
+    def result(self, fut):
+        return fut.result()
+
+    def close(self):
+        self.client.close()
+        if self._cluster is not None:
+            self._cluster.close()
+
+
+def make_executor(name: str, jobs: int = 1, address: str | None = None):
+    if name == "inline":
+        return InlineExecutor()
+    if name == "process":
+        return ProcessExecutor(max(1, jobs))
+    if name == "dask":
+        return DaskExecutor(address, max(1, jobs))
+    raise PipelineError(f"unknown executor '{name}' (inline, process, dask)")

@@ -1,0 +1,254 @@
+"""Nodes, fan-out grids, instances and target selection.
+
+A node is a pure function named by import path ("pkg.module:function"), its inputs
+(other nodes' artifacts), the params keys it reads, and optionally a grid to fan out
+over. An instance of a node with a grid is named `node[var=value,...]`.
+
+Input references:
+  "up"                     one instance of `up`: its only one, or the one whose grid
+                           values equal this instance's values of the same variables
+  "up[sensor={source}]"    a template filled from this instance's grid values
+  "up[*]" / "up[a=1]"      gather: every matching instance, passed as a dict keyed by
+                           the remaining grid values ("b=2" or just "2" for one variable)
+"""
+from __future__ import annotations
+
+import difflib
+import re
+from dataclasses import dataclass, field
+from typing import Any
+
+from pipeline import params as P
+from pipeline.errors import PipelineError
+
+_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+_REF = re.compile(r"^(?P<node>[A-Za-z_][A-Za-z0-9_]*)(\[(?P<sel>[^\]]*)\])?$")
+
+
+@dataclass(frozen=True)
+class Node:
+    name: str
+    func: str
+    inputs: dict[str, str] = field(default_factory=dict)
+    params: dict[str, str] = field(default_factory=dict)
+    grid: dict[str, Any] = field(default_factory=dict)   # var -> params key or literal list
+    version: str | None = None       # overrides the code fingerprint when set
+    source: bool = False             # captured data: never re-run automatically
+    description: str = ""
+
+
+@dataclass
+class Instance:
+    node: Node
+    bindings: tuple[tuple[str, Any], ...]
+    params: dict[str, Any]                       # resolved: arg -> value
+    inputs: dict[str, str | dict[str, str]] = field(default_factory=dict)  # arg -> instance name(s)
+    param_keys: list[str] = field(default_factory=list)  # resolved dotted keys (for dvc)
+
+    @property
+    def name(self) -> str:
+        return instance_name(self.node.name, self.bindings)
+
+    def upstream(self) -> list[str]:
+        out: list[str] = []
+        for v in self.inputs.values():
+            out += list(v.values()) if isinstance(v, dict) else [v]
+        return out
+
+
+def _fmt(value: Any) -> str:
+    return str(value).lower() if isinstance(value, bool) else str(value)
+
+
+def instance_name(node: str, bindings) -> str:
+    if not bindings:
+        return node
+    return f"{node}[{','.join(f'{k}={_fmt(v)}' for k, v in bindings)}]"
+
+
+def parse_selector(text: str) -> tuple[str, dict[str, str] | None]:
+    """'render[sensor=a, x=1]' -> ('render', {'sensor': 'a', 'x': '1'}); '[*]' -> {}."""
+    m = _REF.match(text.strip().replace(" ", ""))
+    if not m:
+        raise PipelineError(f"malformed target or reference {text!r}: expected NODE or NODE[var=value,...]")
+    sel = m.group("sel")
+    if sel is None:
+        return m.group("node"), None
+    if sel in ("*", ""):
+        return m.group("node"), {}
+    out = {}
+    for part in sel.split(","):
+        k, eq, v = part.partition("=")
+        if not eq or not _NAME.match(k) or not v:
+            raise PipelineError(f"malformed selector {part!r} in {text!r}: expected var=value")
+        out[k] = v
+    return m.group("node"), out
+
+
+class Graph:
+    """The DAG declaration: `graph.node(...)` calls in one module."""
+
+    def __init__(self, default_targets: list[str] | None = None):
+        self.nodes: dict[str, Node] = {}
+        self.default_targets = default_targets
+
+    def node(self, name: str, func: str, *, inputs: dict[str, str] | None = None,
+             params: dict[str, str] | None = None, grid: dict[str, Any] | None = None,
+             version: str | None = None, source: bool = False, description: str = "") -> Node:
+        if not _NAME.match(name):
+            raise PipelineError(f"invalid node name {name!r}")
+        if name in self.nodes:
+            raise PipelineError(f"node '{name}' declared twice")
+        if ":" not in func:
+            raise PipelineError(f"node '{name}': func must be 'module:function', got {func!r}")
+        n = Node(name, func, dict(inputs or {}), dict(params or {}), dict(grid or {}),
+                 version, source, description)
+        for arg in [*n.inputs, *n.params, *n.grid]:
+            if not _NAME.match(arg):
+                raise PipelineError(f"node '{name}': invalid argument name {arg!r}")
+        clash = set(n.inputs) & set(n.params) | (set(n.inputs) | set(n.params)) & set(n.grid)
+        if clash:
+            raise PipelineError(f"node '{name}': argument(s) {sorted(clash)} declared twice")
+        self.nodes[name] = n
+        return n
+
+    # -- expansion -------------------------------------------------------------------
+
+    def expand(self, params: dict) -> dict[str, Instance]:
+        """All instances in topological order, inputs resolved to instance names."""
+        by_node: dict[str, list[Instance]] = {}
+        out: dict[str, Instance] = {}
+        for name in self._topo_nodes():
+            node = self.nodes[name]
+            by_node[name] = []
+            for bindings in self._grid_points(node, params):
+                inst = self._instance(node, bindings, params, by_node)
+                by_node[name].append(inst)
+                out[inst.name] = inst
+        return out
+
+    def _topo_nodes(self) -> list[str]:
+        deps = {}
+        for n in self.nodes.values():
+            ups = set()
+            for arg, ref in n.inputs.items():
+                up, _ = parse_selector(ref.replace("{", "").replace("}", ""))
+                if up not in self.nodes:
+                    raise PipelineError(f"node '{n.name}' input '{arg}' names unknown node '{up}'")
+                ups.add(up)
+            deps[n.name] = ups
+        order, state = [], {}
+
+        def visit(v, stack):
+            if state.get(v) == 2:
+                return
+            if state.get(v) == 1:
+                raise PipelineError(f"cycle in graph: {' -> '.join(stack + [v])}")
+            state[v] = 1
+            for u in sorted(deps[v]):
+                visit(u, stack + [v])
+            state[v] = 2
+            order.append(v)
+
+        for v in self.nodes:
+            visit(v, [])
+        return order
+
+    def _grid_points(self, node: Node, params: dict) -> list[tuple[tuple[str, Any], ...]]:
+        points: list[tuple[tuple[str, Any], ...]] = [()]
+        for var, spec in node.grid.items():
+            values = P.get(params, spec) if isinstance(spec, str) else spec
+            if isinstance(values, dict):
+                values = list(values)
+            if not isinstance(values, list) or not values:
+                raise PipelineError(f"node '{node.name}' grid '{var}' ({spec}) must be a non-empty list")
+            for v in values:
+                if not isinstance(v, (str, int, float, bool)) or not re.match(r"^[^\[\],=\s{}]+$", _fmt(v)):
+                    raise PipelineError(f"node '{node.name}' grid '{var}': invalid value {v!r}")
+            points = [p + ((var, v),) for p in points for v in values]
+        return points
+
+    def _instance(self, node: Node, bindings, params, by_node) -> Instance:
+        env = {k: _fmt(v) for k, v in bindings}
+        resolved, keys = {}, []
+        for arg, key in node.params.items():
+            dotted = key.format(**env)
+            resolved[arg] = P.get(params, dotted)
+            keys.append(dotted)
+        keys += [spec for spec in node.grid.values() if isinstance(spec, str)]
+        inst = Instance(node, tuple(bindings), resolved, param_keys=keys)
+        for arg, ref in node.inputs.items():
+            try:
+                up_name, sel = parse_selector(ref.format(**env))
+            except (KeyError, IndexError):
+                raise PipelineError(f"node '{node.name}' input '{arg}': template {ref!r} "
+                                    f"uses a variable not in its grid {list(env)}") from None
+            candidates = by_node[up_name]
+            up_vars = list(self.nodes[up_name].grid)
+            if sel is None:  # match on shared variable names
+                shared = {k: v for k, v in env.items() if k in up_vars}
+                match = [c for c in candidates if all(_fmt(dict(c.bindings)[k]) == v for k, v in shared.items())]
+                if len(match) != 1:
+                    raise PipelineError(
+                        f"node '{inst.name}' input '{arg}': '{ref}' matches {len(match)} instances; "
+                        f"use '{up_name}[var=...]' or '{up_name}[*]'")
+                inst.inputs[arg] = match[0].name
+            else:
+                unknown = set(sel) - set(up_vars)
+                if unknown:
+                    raise PipelineError(f"node '{node.name}' input '{arg}': '{up_name}' has no grid "
+                                        f"variable {sorted(unknown)}")
+                match = [c for c in candidates if all(_fmt(dict(c.bindings)[k]) == v for k, v in sel.items())]
+                if not match:
+                    raise PipelineError(f"node '{inst.name}' input '{arg}': no instance matches '{ref}'")
+                if set(sel) == set(up_vars):
+                    inst.inputs[arg] = match[0].name
+                else:
+                    rest = [v for v in up_vars if v not in sel]
+                    gathered = {}
+                    for c in match:
+                        b = dict(c.bindings)
+                        label = _fmt(b[rest[0]]) if len(rest) == 1 else \
+                            ",".join(f"{v}={_fmt(b[v])}" for v in rest)
+                        gathered[label] = c.name
+                    inst.inputs[arg] = gathered
+        return inst
+
+    # -- targets ---------------------------------------------------------------------
+
+    def select(self, instances: dict[str, Instance], targets: list[str] | None) -> list[str]:
+        """Instance names named by targets (node names, instances or partial selectors)."""
+        targets = list(targets or self.default_targets or [])
+        if not targets:  # default: every sink
+            used = {u for i in instances.values() for u in i.upstream()}
+            return [n for n in instances if n not in used]
+        chosen: list[str] = []
+        for t in targets:
+            node, sel = parse_selector(t)
+            if node not in self.nodes:
+                close = difflib.get_close_matches(node, list(self.nodes), n=1)
+                hint = f"; did you mean '{close[0]}'?" if close else ""
+                raise PipelineError(f"unknown target '{t}'{hint}")
+            grid = self.nodes[node].grid
+            if sel:
+                bad = set(sel) - set(grid)
+                if bad:
+                    raise PipelineError(f"unknown target '{t}': node '{node}' has no grid variable "
+                                        f"{sorted(bad)} (its grid: {list(grid) or 'none'})")
+            match = [i.name for i in instances.values() if i.node.name == node and
+                     all(_fmt(dict(i.bindings)[k]) == v for k, v in (sel or {}).items())]
+            if not match:
+                raise PipelineError(f"unknown target '{t}': no instance of '{node}' has those values")
+            chosen += [m for m in match if m not in chosen]
+        return chosen
+
+    def closure(self, instances: dict[str, Instance], names: list[str]) -> list[str]:
+        """The named instances and all their ancestors, in topological order."""
+        need: set[str] = set()
+        stack = list(names)
+        while stack:
+            n = stack.pop()
+            if n not in need:
+                need.add(n)
+                stack += instances[n].upstream()
+        return [n for n in instances if n in need]

@@ -1,0 +1,85 @@
+"""Metrics gathered from the store, and comparison with a committed baseline.
+
+A baseline file (YAML or JSON) holds `metrics: {name: value}` and `tolerances:
+{glob: {abs: a, rel: r}}` (first matching glob wins; default: abs 0, rel 0). A metric
+regresses when it is worse than the baseline by more than max(abs, rel * |baseline|), in
+the metric's direction (higher is better for r2, iou, success; lower for the rest), or
+when it is missing.
+"""
+from __future__ import annotations
+
+import fnmatch
+import json
+import math
+from pathlib import Path
+
+import yaml
+
+from pipeline.errors import PipelineError
+
+HIGHER_IS_BETTER = ("r2", "iou", "success", "accuracy", "speedup")
+
+
+def higher_is_better(name: str) -> bool:
+    leaf = name.rsplit("/", 1)[-1]
+    return any(leaf == h or leaf.startswith(h + "_") for h in HIGHER_IS_BETTER)
+
+
+def collect(planned) -> dict[str, float]:
+    out: dict[str, float] = {}
+    for p in planned:
+        for k, v in ((p.record or {}).get("metrics") or {}).items():
+            if k in out and out[k] != v:
+                raise PipelineError(f"metric '{k}' reported by two artifacts with different values")
+            out[k] = v
+    return dict(sorted(out.items()))
+
+
+def load_baseline(path: Path) -> dict:
+    try:
+        doc = yaml.safe_load(Path(path).read_text())
+    except OSError as exc:
+        raise PipelineError(f"cannot read baseline {path}: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise PipelineError(f"malformed baseline {path}: {str(exc).splitlines()[0]}") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("metrics"), dict):
+        raise PipelineError(f"baseline {path} must have a 'metrics' mapping")
+    tol = doc.get("tolerances") or {}
+    if not isinstance(tol, dict) or not all(isinstance(v, dict) for v in tol.values()):
+        raise PipelineError(f"baseline {path}: 'tolerances' must map globs to {{abs, rel}}")
+    return {"metrics": doc["metrics"], "tolerances": tol}
+
+
+def tolerance(name: str, tolerances: dict) -> float:
+    for pattern, t in tolerances.items():
+        if fnmatch.fnmatchcase(name, pattern):
+            return t
+    return {}
+
+
+def compare(current: dict[str, float], baseline: dict) -> list[dict]:
+    rows = []
+    for name, base in sorted(baseline["metrics"].items()):
+        t = tolerance(name, baseline["tolerances"])
+        allowed = max(float(t.get("abs", 0.0)), float(t.get("rel", 0.0)) * abs(float(base)))
+        cur = current.get(name)
+        if cur is None or (isinstance(cur, float) and math.isnan(cur)):
+            rows.append({"metric": name, "baseline": base, "current": None, "allowed": allowed,
+                         "regression": True, "why": "missing"})
+            continue
+        worse = (base - cur) if higher_is_better(name) else (cur - base)
+        rows.append({"metric": name, "baseline": base, "current": cur, "allowed": allowed,
+                     "regression": worse > allowed + 1e-12, "why": f"worse by {worse:.4g}" if worse > 0 else ""})
+    return rows
+
+
+def save_baseline(path: Path, current: dict[str, float]) -> None:
+    """Write current metrics as the baseline, keeping the file's tolerances."""
+    tol = {}
+    if Path(path).exists():
+        tol = load_baseline(path)["tolerances"]
+    Path(path).write_text(yaml.safe_dump({"tolerances": tol, "metrics": current}, sort_keys=False))
+
+
+def dumps(current: dict) -> str:
+    return json.dumps(current, indent=None, sort_keys=True)

@@ -1,0 +1,163 @@
+"""Params: the base file is the schema; profiles and -p overrides may only change values.
+
+A value may change to another of the same type (an int is accepted where a float is
+expected); lists keep their element type; unknown keys are rejected with the file and
+line that named them.
+"""
+from __future__ import annotations
+
+import copy
+import difflib
+import re
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from pipeline.errors import PipelineError
+
+_KEY = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*(\.[A-Za-z0-9_\-]+)*$")
+
+
+def _load_yaml(path: Path) -> tuple[Any, dict[str, int]]:
+    """Parse YAML; return data and {dotted key: line number} for error messages."""
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise PipelineError(f"cannot read params file {path}: {exc.strerror}") from None
+    try:
+        node = yaml.compose(text, Loader=yaml.SafeLoader)
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"{path}:{mark.line + 1}" if mark else str(path)
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise PipelineError(f"malformed YAML in {where}: {problem}") from None
+    lines: dict[str, int] = {}
+
+    def walk(n, prefix):
+        if isinstance(n, yaml.MappingNode):
+            for k, v in n.value:
+                key = f"{prefix}.{k.value}" if prefix else str(k.value)
+                lines[key] = k.start_mark.line + 1
+                walk(v, key)
+
+    walk(node, "")
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise PipelineError(f"params file {path} must hold a mapping at the top level")
+    return data, lines
+
+
+def _type_name(v: Any) -> str:
+    return {bool: "bool", int: "int", float: "float", str: "str", list: "list",
+            dict: "mapping", type(None): "null"}.get(type(v), type(v).__name__)
+
+
+def _check_value(key: str, default: Any, value: Any, where: str) -> Any:
+    """Return value coerced to the default's type, or raise naming key and place."""
+    if default is None:
+        return value
+    if isinstance(default, bool) or isinstance(value, bool):
+        ok = isinstance(default, bool) and isinstance(value, bool)
+    elif isinstance(default, float):
+        ok = isinstance(value, (int, float))
+        value = float(value) if ok else value
+    elif isinstance(default, int):
+        ok = isinstance(value, int)
+    elif isinstance(default, str):
+        ok = isinstance(value, str)
+    elif isinstance(default, list):
+        ok = isinstance(value, list)
+        if ok and default:
+            proto = default[0]
+            value = [_check_value(f"{key}[{i}]", proto, v, where) for i, v in enumerate(value)]
+    elif isinstance(default, dict):
+        ok = isinstance(value, dict)
+    else:
+        ok = type(value) is type(default)
+    if not ok:
+        raise PipelineError(f"param '{key}' ({where}) must be {_type_name(default)}, "
+                            f"got {_type_name(value)} {value!r}")
+    return value
+
+
+def _unknown(key: str, schema: dict, where: str) -> PipelineError:
+    parent, _, leaf = key.rpartition(".")
+    try:
+        holder = _lookup(schema, parent)
+    except (KeyError, TypeError):
+        holder = None
+    options = list(holder) if isinstance(holder, dict) else []
+    close = difflib.get_close_matches(leaf, [str(o) for o in options], n=1)
+    hint = f"; did you mean '{(parent + '.') if parent else ''}{close[0]}'?" if close else ""
+    return PipelineError(f"unknown param '{key}' ({where}){hint}")
+
+
+def _lookup(tree: dict, dotted: str) -> Any:
+    cur: Any = tree
+    for part in dotted.split(".") if dotted else []:
+        cur = cur[part]
+    return cur
+
+
+def _merge(schema: dict, base: dict, overlay: dict, prefix: str, where_of) -> None:
+    for k, v in overlay.items():
+        key = f"{prefix}.{k}" if prefix else str(k)
+        where = where_of(key)
+        if not isinstance(base, dict) or k not in base:
+            raise _unknown(key, schema, where)
+        if isinstance(base[k], dict) and isinstance(v, dict):
+            _merge(schema, base[k], v, key, where_of)
+        else:
+            base[k] = _check_value(key, base[k], v, where)
+
+
+def get(params: dict, dotted: str) -> Any:
+    """The value at a dotted key; PipelineError if absent."""
+    try:
+        return _lookup(params, dotted)
+    except (KeyError, TypeError):
+        raise PipelineError(f"unknown param '{dotted}'") from None
+
+
+def parse_override(text: str) -> tuple[str, Any]:
+    key, sep, raw = text.partition("=")
+    key = key.strip()
+    if not sep or not _KEY.match(key):
+        raise PipelineError(f"malformed override {text!r}: expected KEY=VALUE with a dotted KEY")
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else ""
+    except yaml.YAMLError:
+        raise PipelineError(f"malformed value in override {text!r}: not valid YAML") from None
+    return key, value
+
+
+def load(base_file: Path, profile: str | None = None, overrides: list[str] = (),
+         profiles_dir: Path | None = None) -> dict:
+    """params.yaml, then params/<profile>.yaml, then -p KEY=VALUE overrides, all validated."""
+    schema, _ = _load_yaml(base_file)
+    params = copy.deepcopy(schema)
+    if profile and profile != "default":
+        pdir = profiles_dir or base_file.parent / "params"
+        pfile = pdir / f"{profile}.yaml"
+        if not pfile.is_file():
+            known = sorted(p.stem for p in pdir.glob("*.yaml")) if pdir.is_dir() else []
+            raise PipelineError(f"unknown profile '{profile}' (known: {', '.join(['default'] + known)})")
+        overlay, lines = _load_yaml(pfile)
+        _merge(schema, params, overlay, "", lambda k: f"{pfile}:{lines.get(k, '?')}")
+    for text in overrides:
+        key, value = parse_override(text)
+        parent, _, leaf = key.rpartition(".")
+        try:
+            holder = _lookup(params, parent)
+        except (KeyError, TypeError):
+            holder = None
+        if not isinstance(holder, dict) or leaf not in holder:
+            raise _unknown(key, schema, f"-p {text}")
+        if isinstance(holder[leaf], dict) and isinstance(value, dict):
+            _merge(schema, holder[leaf], value, key, lambda k: f"-p {text}")
+        else:
+            holder[leaf] = _check_value(key, holder[leaf], value, f"-p {text}")
+    return params

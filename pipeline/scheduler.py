@@ -1,0 +1,201 @@
+"""Planning (what is stale and why) and running (in topological order, with early cutoff).
+
+A key is known only once every upstream digest is known, so planning walks the graph in
+order: cached upstreams give digests; a stale upstream makes its dependents "stale
+because upstream is stale". Running submits ready instances to an executor; after an
+upstream re-runs, a dependent whose key is unchanged (same input digests) is a cutoff.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from pipeline.errors import NodeFailed, PipelineError
+from pipeline.fingerprint import Fingerprinter
+from pipeline.graph import Graph, Instance
+from pipeline.hashing import ENGINE_VERSION, cache_key, digest_obj
+from pipeline.store import Store
+from pipeline.worker import execute
+
+
+@dataclass
+class Planned:
+    name: str
+    status: str                # cached | stale   (after a run: ran | cached | cutoff)
+    reason: str = ""
+    key: str | None = None
+    record: dict | None = None
+    seconds: float = 0.0
+    parts: dict = field(default_factory=dict)
+
+
+class Scheduler:
+    def __init__(self, graph: Graph, params: dict, store: Store, roots: list[str]):
+        self.graph, self.params, self.store = graph, params, store
+        self.roots = [str(r) for r in roots]
+        self.instances = graph.expand(params)
+        self.fingerprinter = Fingerprinter([Path(r) for r in self.roots])
+        self._code: dict[str, str] = {}
+
+    def code(self, inst: Instance) -> str:
+        node = inst.node
+        if node.name not in self._code:
+            if node.source:  # captured data outlives the capture code
+                self._code[node.name] = "source"
+            elif node.version is not None:
+                self._code[node.name] = f"v:{node.version}"
+            else:
+                self._code[node.name] = self.fingerprinter.fingerprint(node.func)
+        return self._code[node.name]
+
+    def targets(self, targets: list[str] | None) -> list[str]:
+        return self.graph.select(self.instances, targets)
+
+    def _key(self, inst: Instance, done: dict[str, dict]) -> tuple[str, dict]:
+        def digest_of(ref):
+            if isinstance(ref, dict):
+                return {label: done[n]["digest"] for label, n in ref.items()}
+            return done[ref]["digest"]
+
+        def key_of(ref):
+            if isinstance(ref, dict):
+                return {label: done[n]["key"] for label, n in ref.items()}
+            return done[ref]["key"]
+
+        digests = {arg: digest_of(ref) for arg, ref in inst.inputs.items()}
+        params = {"params": inst.params, "grid": dict(inst.bindings)}
+        code = self.code(inst)
+        parts = {"code": code, "params_digest": digest_obj(params), "input_digests": digests,
+                 "inputs": {arg: key_of(ref) for arg, ref in inst.inputs.items()}}
+        return cache_key(inst.name, code, params, digests), parts
+
+    def _why(self, inst: Instance, parts: dict) -> str:
+        ref = self.store.read_ref(inst.name)
+        if ref is None:
+            return "missing"
+        if ref.get("code") != parts["code"]:
+            return "code changed"
+        if ref.get("params_digest") != parts["params_digest"]:
+            return "params changed"
+        old = ref.get("input_digests", {})
+        changed = [a for a in parts["input_digests"] if old.get(a) != parts["input_digests"][a]]
+        if changed:
+            return f"input changed ({', '.join(changed)})"
+        return "missing"
+
+    def _lookup(self, key: str) -> tuple[dict | None, str]:
+        if not self.store.path(key).exists():
+            return None, "missing"
+        rec = self.store.record(key)
+        return rec, "" if rec else "corrupt (moved to corrupt/)"
+
+    def plan(self, targets: list[str] | None = None) -> list[Planned]:
+        names = self.graph.closure(self.instances, self.targets(targets))
+        done: dict[str, dict] = {}
+        out = []
+        for n in names:
+            inst = self.instances[n]
+            stale_up = [u for u in inst.upstream() if u not in done]
+            if stale_up:
+                out.append(Planned(n, "stale", f"upstream stale ({stale_up[0]})"))
+                continue
+            key, parts = self._key(inst, done)
+            rec, problem = self._lookup(key)
+            if rec is not None:
+                done[n] = rec
+                out.append(Planned(n, "cached", "", key, rec, parts=parts))
+            else:
+                reason = problem if problem != "missing" else self._why(inst, parts)
+                out.append(Planned(n, "stale", reason, key, parts=parts))
+        return out
+
+    def _task(self, inst: Instance, key: str, parts: dict, force: bool) -> dict:
+        return {"store": str(self.store.root), "key": key, "func": inst.node.func,
+                "roots": self.roots, "node": inst.node.name, "instance": inst.name,
+                "params": inst.params, "grid": dict(inst.bindings), "inputs": parts["inputs"],
+                "input_digests": parts["input_digests"], "code": parts["code"],
+                "engine": ENGINE_VERSION, "force": force}
+
+    def run(self, targets: list[str] | None = None, executor=None, *, force: bool = False,
+            progress: bool = False, meta: dict | None = None) -> list[Planned]:
+        from pipeline.executors import InlineExecutor
+        executor = executor or InlineExecutor()
+        chosen = self.targets(targets)
+        names = self.graph.closure(self.instances, chosen)
+        explicit = set(chosen)
+        done: dict[str, dict] = {}
+        results: dict[str, Planned] = {}
+        ran: set[str] = set()
+        pending = list(names)
+        running: dict[Any, tuple[str, str, dict, float]] = {}
+        failure: tuple[str, dict] | None = None
+        bar = _bar(len(names)) if progress else None
+        self.store.init()
+        try:
+            while (pending and failure is None) or running:
+                for n in list(pending) if failure is None else []:
+                    inst = self.instances[n]
+                    if any(u not in done for u in inst.upstream()):
+                        continue
+                    pending.remove(n)
+                    key, parts = self._key(inst, done)
+                    rec = None if (force and n in explicit) else self._lookup(key)[0]
+                    if rec is not None:
+                        done[n] = rec
+                        status = "cutoff" if any(u in ran for u in inst.upstream()) else "cached"
+                        results[n] = Planned(n, status, "", key, rec, parts=parts)
+                        self._ref(n, rec, parts)
+                        if bar:
+                            bar.update(1)
+                        continue
+                    if inst.node.source and n not in explicit:
+                        raise PipelineError(f"source node {n} has no artifact for these params; "
+                                            f"capture it explicitly with `pipeline run '{n}'`")
+                    fut = executor.submit(execute, self._task(inst, key, parts, force and n in explicit))
+                    running[fut] = (n, key, parts, time.time())
+                if not running:
+                    if pending and failure is None:
+                        raise PipelineError(f"cannot schedule {pending[0]}: an input is unavailable")
+                    break
+                for fut in executor.wait(list(running)):
+                    n, key, parts, t0 = running.pop(fut)
+                    out = executor.result(fut)
+                    if "error" in out:
+                        failure = failure or (n, out)
+                        continue
+                    rec = out["record"]
+                    done[n] = rec
+                    if out["computed"]:
+                        ran.add(n)
+                    status = "ran" if out["computed"] else "cached"
+                    results[n] = Planned(n, status, "", key, rec, round(time.time() - t0, 4), parts)
+                    self._ref(n, rec, parts)
+                    if bar:
+                        bar.update(1)
+                        bar.set_postfix_str(n, refresh=False)
+        finally:
+            if bar:
+                bar.close()
+            if done:
+                self.store.log_run([r["key"] for r in done.values()], meta or {})
+        if failure:
+            n, out = failure
+            if out.get("user_error"):
+                raise PipelineError(f"node {n}: {out['error']}")
+            raise NodeFailed(n, out["error"], out.get("traceback", ""))
+        return [results[n] for n in names]
+
+    def _ref(self, name: str, rec: dict, parts: dict) -> None:
+        self.store.write_ref(name, {"key": rec["key"], "digest": rec["digest"], "code": parts["code"],
+                                    "params_digest": parts["params_digest"],
+                                    "input_digests": parts["input_digests"]})
+
+
+def _bar(total: int):
+    if not sys.stderr.isatty():
+        return None
+    from tqdm import tqdm
+    return tqdm(total=total, unit="node", file=sys.stderr, leave=False)

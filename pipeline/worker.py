@@ -1,0 +1,123 @@
+"""Runs one node instance: open inputs, call the function, write the artifact.
+
+A task is a plain dict (keys, paths, params), so the same function runs in-process, in
+a spawned process or on a Dask worker; no HDF5 object ever crosses a process boundary.
+A node function returns a mapping (datasets, plus optional "attrs" and "metrics"), or is
+a generator yielding chunks appended along axis 0 and returning that final mapping.
+"""
+from __future__ import annotations
+
+import importlib
+import inspect
+import math
+import sys
+import time
+import traceback
+from typing import Any, Mapping
+
+from pipeline.errors import PipelineError
+
+_RESERVED = ("attrs", "metrics")
+
+
+def _import(ref: str):
+    module, _, name = ref.partition(":")
+    try:
+        return getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError) as exc:
+        raise PipelineError(f"cannot import node function '{ref}': {exc}") from None
+
+
+def _flatten(mapping: Mapping[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
+    out = []
+    for k, v in mapping.items():
+        name = f"{prefix}/{k}" if prefix else str(k)
+        if isinstance(v, Mapping):
+            out += _flatten(v, name)
+        else:
+            out.append((name, v))
+    return out
+
+
+def _write_final(writer, result: Mapping[str, Any], instance: str) -> None:
+    if not isinstance(result, Mapping):
+        raise PipelineError(f"node {instance} returned {type(result).__name__}; "
+                            "expected a mapping of arrays (or a generator of chunks)")
+    writer.set_attrs(result.get("attrs", {}))
+    for name, value in dict(result.get("metrics", {})).items():
+        try:
+            value = float(value)
+        except (TypeError, ValueError):
+            raise PipelineError(f"node {instance}: metric '{name}' is not a number: {value!r}") from None
+        if math.isnan(value):
+            raise PipelineError(f"node {instance}: metric '{name}' is NaN")
+        writer.metrics[name] = value
+    for name, value in _flatten({k: v for k, v in result.items() if k not in _RESERVED}):
+        writer.put(name, value)
+
+
+def _consume(result: Any, writer, instance: str) -> None:
+    if inspect.isgenerator(result):
+        while True:
+            try:
+                chunk = next(result)
+            except StopIteration as stop:
+                final = stop.value
+                break
+            if not isinstance(chunk, Mapping):
+                raise PipelineError(f"node {instance} yielded {type(chunk).__name__}; expected a mapping of arrays")
+            for name, value in _flatten(chunk):
+                writer.append(name, value)
+        _write_final(writer, final or {}, instance)
+    else:
+        _write_final(writer, result, instance)
+
+
+def execute(task: dict) -> dict:
+    """Compute one artifact (unless another process already did). Never raises for node errors."""
+    for root in task.get("roots", []):
+        if root not in sys.path:
+            sys.path.insert(0, root)
+    from pipeline.artifact import Artifact
+    from pipeline.store import Store
+
+    store = Store(task["store"]).init()
+    key, instance = task["key"], task["instance"]
+    with store.lock(key):
+        if not task.get("force"):
+            rec = store.record(key)
+            if rec is not None:  # another process computed it while we waited
+                return {"record": rec, "computed": False}
+        t0 = time.time()
+        opened: list[Artifact] = []
+        writer = None
+        try:
+            func = _import(task["func"])
+            kwargs: dict[str, Any] = dict(task["grid"])
+            kwargs.update(task["params"])
+            for arg, ref in task["inputs"].items():
+                if isinstance(ref, dict):
+                    kwargs[arg] = {label: Artifact(store.path(k)) for label, k in ref.items()}
+                    opened += kwargs[arg].values()
+                else:
+                    kwargs[arg] = Artifact(store.path(ref))
+                    opened.append(kwargs[arg])
+            prov = {k: task[k] for k in ("node", "instance", "key", "code", "params", "grid",
+                                         "inputs", "input_digests", "engine")}
+            prov["setup_seconds"] = time.time() - t0
+            writer = store.writer(key, prov)
+            _consume(func(**kwargs), writer, instance)
+            rec = writer.commit()
+            writer = None
+            return {"record": rec, "computed": True}
+        except BaseException as exc:  # report, don't crash the executor
+            if writer is not None:
+                writer.abort()
+            if isinstance(exc, KeyboardInterrupt):
+                raise
+            user = isinstance(exc, PipelineError)
+            return {"error": f"{type(exc).__name__}: {exc}" if not user else str(exc),
+                    "user_error": user, "traceback": "" if user else traceback.format_exc()}
+        finally:
+            for a in opened:
+                a.close()
