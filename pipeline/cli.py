@@ -245,7 +245,7 @@ def cmd_verify(ctx: Context) -> int:
     bad = ctx.store.verify(bar)
     for key, _ in bad:  # the next run re-checks these from content, then recomputes them
         (ctx.store.index / f"{key}.json").unlink(missing_ok=True)
-    n = len(list(ctx.store.objects.glob("*.h5"))) if ctx.store.objects.is_dir() else 0
+    n = len(ctx.store.object_paths())
     if ctx.args.json:
         _print_json({"checked": n, "corrupt": [{"key": k, "problem": m} for k, m in bad]})
     else:

@@ -157,6 +157,8 @@ class Fingerprinter:
     def _follow_import(self, info: ModuleInfo, alias: str, attrs: set[str] | None,
                        seen: set[tuple[str, str | None]]) -> None:
         mod, sym = info.imports[alias]
+        if sym is not None and self.find(f"{mod}.{sym}") is not None:  # `from pkg import module`
+            mod, sym = f"{mod}.{sym}", None
         if sym is None:  # a module object: follow the attributes used on it
             if attrs:
                 for a in attrs:

@@ -30,10 +30,7 @@ def _plain(obj: Any) -> Any:
             return repr(obj)
         # 1 and 1.0 are the same parameter value to a numeric node
         return int(obj) if obj.is_integer() and abs(obj) < 2**53 else obj
-    item = getattr(obj, "item", None)  # numpy scalars
-    if callable(item):
-        return _plain(item())
-    tolist = getattr(obj, "tolist", None)
+    tolist = getattr(obj, "tolist", None)  # numpy arrays and scalars
     if callable(tolist):
         return _plain(tolist())
     raise TypeError(f"cannot hash value of type {type(obj).__name__}")

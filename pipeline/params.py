@@ -19,6 +19,21 @@ from pipeline.errors import PipelineError
 _KEY = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*(\.[A-Za-z0-9_\-]+)*$")
 
 
+class Loader(yaml.SafeLoader):
+    """YAML 1.1 reads 1.45e5 as a string; scientists write moduli that way."""
+
+
+Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*\.[0-9_]*|\.[0-9_]+|[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)?$"
+               r"|^[-+]?\.(?:inf|Inf|INF)$|^\.(?:nan|NaN|NAN)$"),
+    list("-+0123456789."))
+
+
+def safe_load(text: str):
+    return yaml.load(text, Loader=Loader)  # noqa: S506 - Loader is a SafeLoader
+
+
 def _load_yaml(path: Path) -> tuple[Any, dict[str, int]]:
     """Parse YAML; return data and {dotted key: line number} for error messages."""
     try:
@@ -26,8 +41,8 @@ def _load_yaml(path: Path) -> tuple[Any, dict[str, int]]:
     except OSError as exc:
         raise PipelineError(f"cannot read params file {path}: {exc.strerror}") from None
     try:
-        node = yaml.compose(text, Loader=yaml.SafeLoader)
-        data = yaml.safe_load(text)
+        node = yaml.compose(text, Loader=Loader)
+        data = safe_load(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"{path}:{mark.line + 1}" if mark else str(path)
@@ -128,7 +143,7 @@ def parse_override(text: str) -> tuple[str, Any]:
     if not sep or not _KEY.match(key):
         raise PipelineError(f"malformed override {text!r}: expected KEY=VALUE with a dotted KEY")
     try:
-        value = yaml.safe_load(raw) if raw.strip() else ""
+        value = safe_load(raw) if raw.strip() else ""
     except yaml.YAMLError:
         raise PipelineError(f"malformed value in override {text!r}: not valid YAML") from None
     return key, value

@@ -74,6 +74,12 @@ class Store:
     def path(self, key: str) -> Path:
         return self.objects / f"{key}.h5"
 
+    def object_paths(self) -> list[Path]:
+        """Published artifacts (temp files of writers in progress start with '.')."""
+        if not self.objects.is_dir():
+            return []
+        return sorted(p for p in self.objects.glob("*.h5") if not p.name.startswith("."))
+
     # -- records ---------------------------------------------------------------------
 
     def _index_path(self, key: str) -> Path:
@@ -212,7 +218,7 @@ class Store:
         """Re-digest every artifact; return [(key, problem)] for the damaged ones."""
         from pipeline.artifact import verify_file
         bad = []
-        paths = sorted(self.objects.glob("*.h5")) if self.objects.is_dir() else []
+        paths = self.object_paths()
         known = {p.stem for p in self.index.glob("*.json")} if self.index.is_dir() else set()
         for key in sorted(known - {p.stem for p in paths}):
             bad.append((key, "file missing"))
@@ -245,7 +251,7 @@ class Store:
                         keep.add(k)
                         stack.append(k)
         removed = []
-        for key in sorted(set(records) | {p.stem for p in self.objects.glob("*.h5")}):
+        for key in sorted(set(records) | {p.stem for p in self.object_paths()}):
             if key in keep:
                 continue
             removed.append(key)

@@ -1,0 +1,89 @@
+"""What re-runs after which edit: code, comments, helpers, params, early cutoff."""
+import json
+
+from toyproject import cli, run_json, statuses
+
+ALL = ["base", "scaled", "shifted[letter=a]", "shifted[letter=b]", "frames", "summary"]
+
+
+def test_first_run_then_everything_cached(toy):
+    first = run_json(toy)
+    assert statuses(first) == {n: "ran" for n in ALL}
+    assert set(first) == {"nodes", "seconds"}
+    assert all(set(n) == {"name", "key", "status", "seconds"} for n in first["nodes"])
+    second = run_json(toy)
+    assert statuses(second) == {n: "cached" for n in ALL}
+    assert [n["key"] for n in first["nodes"]] == [n["key"] for n in second["nodes"]]
+
+
+def test_comment_only_edit_reruns_nothing(toy):
+    run_json(toy)
+    f = toy / "toy" / "nodes.py"
+    f.write_text(f.read_text().replace("# a comment that does not change the code",
+                                       "# reworded\n    # and longer").replace('def scale(base, scale):',
+                                                                            'def scale(base, scale):\n    """Doc."""'))
+    assert set(statuses(run_json(toy)).values()) == {"cached"}
+
+
+def test_helper_edit_reruns_its_users_only(toy):
+    run_json(toy)
+    f = toy / "toy" / "helpers.py"
+    f.write_text(f.read_text().replace("1e-9", "1e-3"))
+    st = statuses(run_json(toy))
+    assert st == {"base": "cached", "scaled": "ran", "shifted[letter=a]": "ran", "shifted[letter=b]": "ran",
+                  "frames": "cached", "summary": "ran"}
+
+
+def test_param_change_reruns_only_dependents(toy):
+    run_json(toy)
+    st = statuses(run_json(toy, "-p", "offset.a=2.0"))
+    assert st == {"base": "cached", "scaled": "cached", "shifted[letter=a]": "ran",
+                  "shifted[letter=b]": "cached", "frames": "cached", "summary": "ran"}
+    # and back: the earlier artifacts are still there
+    assert set(statuses(run_json(toy)).values()) == {"cached"}
+
+
+def test_early_cutoff(toy):
+    run_json(toy)
+    f = toy / "toy" / "helpers.py"  # same result, different code
+    f.write_text(f.read_text().replace("(x - x.mean()) / (x.std() + 1e-9)",
+                                       "(x - np.mean(x)) / (np.std(x) + 1e-9)"))
+    st = statuses(run_json(toy))
+    assert st == {"base": "cached", "scaled": "ran", "shifted[letter=a]": "cutoff",
+                  "shifted[letter=b]": "cutoff", "frames": "cached", "summary": "cached"}
+
+
+def test_status_says_why(toy):
+    run_json(toy)
+    (toy / "toy" / "helpers.py").write_text((toy / "toy" / "helpers.py").read_text().replace("1e-9", "1e-6"))
+    out = json.loads(cli(toy, "status", "--json", "-p", "size=9").stdout)
+    why = {n["name"]: (n["status"], n["reason"]) for n in out["nodes"]}
+    assert why["base"] == ("stale", "params changed")
+    assert why["scaled"] == ("stale", "upstream stale (base)")
+    out = json.loads(cli(toy, "status", "--json").stdout)
+    why = {n["name"]: (n["status"], n["reason"]) for n in out["nodes"]}
+    assert why["base"] == ("cached", "") and why["scaled"] == ("stale", "code changed")
+    assert why["shifted[letter=a]"] == ("stale", "upstream stale (scaled)")
+    fresh = json.loads(cli(toy, "status", "--json", "--store", str(toy / "other")).stdout)
+    assert [n["reason"] for n in fresh["nodes"]] == [
+        "missing", "upstream stale (base)", "upstream stale (scaled)", "upstream stale (scaled)",
+        "upstream stale (base)", "upstream stale (shifted[letter=a])"]
+
+
+def test_profile_changes_params(toy):
+    run_json(toy)
+    st = statuses(run_json(toy, "--profile", "small"))
+    assert st["base"] == "ran" and st["summary"] == "ran"
+
+
+def test_targets_and_force(toy):
+    out = run_json(toy, "shifted[letter=b]")
+    assert [n["name"] for n in out["nodes"]] == ["base", "scaled", "shifted[letter=b]"]
+    out = run_json(toy, "scaled", "--force")
+    assert statuses(out) == {"base": "cached", "scaled": "ran"}
+
+
+def test_dry_run_runs_nothing(toy):
+    out = json.loads(cli(toy, "run", "--dry-run", "--json").stdout)
+    assert {n["status"] for n in out["nodes"]} == {"stale"}
+    assert not (toy / "artifacts" / "objects").exists() or not list((toy / "artifacts" / "objects").glob("*.h5"))

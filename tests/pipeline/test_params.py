@@ -1,0 +1,73 @@
+"""params.yaml is the schema: overlays and overrides may change values, never invent keys."""
+import pytest
+
+from pipeline import params as P
+from pipeline.errors import PipelineError
+
+BASE = """\
+seed: 1
+lr: 0.01
+name: sim
+flag: false
+sizes: [64, 128]
+sensors:
+  gelsight:
+    E: 1.45e5
+    markers: 56
+"""
+
+
+@pytest.fixture
+def base(tmp_path):
+    f = tmp_path / "params.yaml"
+    f.write_text(BASE)
+    (tmp_path / "params").mkdir()
+    return f
+
+
+def overlay(base, text, name="ci"):
+    (base.parent / "params" / f"{name}.yaml").write_text(text)
+    return name
+
+
+def test_profile_and_overrides_apply_in_order(base):
+    name = overlay(base, "seed: 2\nsensors:\n  gelsight:\n    markers: 60\n")
+    p = P.load(base, name, ["seed=3", "lr=1", "sizes=[8, 16]"])
+    assert p["seed"] == 3 and p["lr"] == 1.0 and isinstance(p["lr"], float)
+    assert p["sensors"]["gelsight"] == {"E": 1.45e5, "markers": 60}
+    assert p["sizes"] == [8, 16]
+
+
+@pytest.mark.parametrize("text,message", [
+    ("seeds: 2\n", r"unknown param 'seeds' \(.*ci.yaml:1\); did you mean 'seed'\?"),
+    ("sensors:\n  gelsight:\n    Ee: 1.0\n", r"unknown param 'sensors.gelsight.Ee' \(.*ci.yaml:3\)"),
+    ("seed: 2.5\n", r"param 'seed' \(.*ci.yaml:1\) must be int, got float 2.5"),
+    ("flag: 1\n", r"param 'flag' \(.*ci.yaml:1\) must be bool, got int 1"),
+    ("sizes: [1, x]\n", r"param 'sizes\[1\]' \(.*ci.yaml:1\) must be int, got str 'x'"),
+    ("seed: [1\nlr: 2\n", r"malformed YAML in .*ci.yaml:2"),
+    ("- a\n- b\n", r"must hold a mapping"),
+])
+def test_profile_errors_name_key_and_line(base, text, message):
+    name = overlay(base, text)
+    with pytest.raises(PipelineError, match=message):
+        P.load(base, name)
+
+
+@pytest.mark.parametrize("override,message", [
+    ("sed=1", r"unknown param 'sed' \(-p sed=1\); did you mean 'seed'\?"),
+    ("seed=abc", r"param 'seed' \(-p seed=abc\) must be int, got str 'abc'"),
+    ("name=3", r"param 'name' .* must be str, got int 3"),
+    ("sensors.tactip.E=1", r"unknown param 'sensors.tactip.E'"),
+    ("seed", r"malformed override 'seed': expected KEY=VALUE"),
+    ("lr=[1", r"malformed value in override 'lr=\[1'"),
+    ("sensors.gelsight={E: 1, x: 2}", r"unknown param 'sensors.gelsight.x'"),
+])
+def test_override_errors(base, override, message):
+    with pytest.raises(PipelineError, match=message):
+        P.load(base, None, [override])
+
+
+def test_unknown_profile_lists_known(base):
+    overlay(base, "seed: 2\n", "paper")
+    with pytest.raises(PipelineError, match=r"unknown profile 'nope' \(known: default, paper\)"):
+        P.load(base, "nope")

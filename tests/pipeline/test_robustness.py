@@ -1,0 +1,188 @@
+"""Crashes, concurrency, corruption and bad input never damage the store."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from pipeline.cli import main
+from toyproject import cli, run_json, statuses
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _env():
+    return {**os.environ, "PYTHONPATH": str(REPO)}
+
+
+def test_sigkill_mid_write_leaves_no_partial_artifact(toy):
+    run_json(toy, "base")  # so that the plan knows the key of frames
+    plan = json.loads(cli(toy, "run", "--dry-run", "--json", "frames", "-p", "slow=0.4").stdout)
+    key = {n["name"]: n["key"] for n in plan["nodes"]}["frames"]
+    objects = toy / "artifacts" / "objects"
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline", "run", "frames", "-p", "slow=0.4"],
+                            cwd=toy, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert key is not None
+    deadline = time.time() + 60
+    while not list(objects.glob(f".tmp-{key}-*")) and time.time() < deadline:
+        time.sleep(0.05)
+    time.sleep(0.5)  # some chunks are written
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+    assert list(objects.glob(f".tmp-{key}-*")), "the writer was killed before it started"
+    assert not (objects / f"{key}.h5").exists()
+    out = json.loads(cli(toy, "status", "--json", "frames", "-p", "slow=0.4").stdout)
+    assert {n["name"]: n["status"] for n in out["nodes"]}["frames"] == "stale"
+    out = run_json(toy, "frames", "-p", "slow=0.01")
+    assert statuses(out)["frames"] == "ran"
+    with h5py.File(objects / f"{out['nodes'][-1]['key']}.h5") as f:
+        assert f["images"].shape == (40, 4, 4)
+    cli(toy, "gc")
+    assert not list(objects.glob(".tmp-*"))
+
+
+def test_concurrent_runs_compute_each_node_once(toy, tmp_path):
+    log = tmp_path / "log.txt"
+    env = {**_env(), "TOY_LOG": str(log)}
+    args = [sys.executable, "-m", "pipeline", "run", "--json", "-p", "slow=0.2"]
+    procs = [subprocess.Popen(args, cwd=toy, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for _ in range(2)]
+    outs = [p.communicate(timeout=120) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], outs
+    lines = log.read_text().split()
+    assert sorted(lines) == sorted(set(lines)) and len(lines) == 6
+    a, b = (statuses(json.loads(o)) for o, _ in outs)
+    assert all(sorted([a[n], b[n]]) in (["cached", "ran"], ["cutoff", "ran"]) for n in a)
+
+
+def _flip(path: Path, dataset: str) -> None:
+    with h5py.File(path, "r") as f:
+        offset = f[dataset].id.get_offset()
+    with open(path, "r+b") as fh:
+        fh.seek(offset)
+        b = fh.read(1)
+        fh.seek(offset)
+        fh.write(bytes([b[0] ^ 0x01]))
+
+
+@pytest.mark.parametrize("damage", ["flip", "flip-keep-mtime", "truncate"])
+def test_corrupt_artifact_reported_by_verify_and_recomputed(toy, damage):
+    first = run_json(toy)
+    key = {n["name"]: n["key"] for n in first["nodes"]}["base"]
+    path = toy / "artifacts" / "objects" / f"{key}.h5"
+    st = path.stat()
+    if damage == "truncate":
+        with open(path, "r+b") as fh:
+            fh.truncate(st.st_size - 100)
+    else:
+        _flip(path, "x")
+        if damage == "flip-keep-mtime":
+            os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
+    v = cli(toy, "verify", check=False)
+    assert v.returncode == 1 and f"corrupt {key}" in v.stdout and "1 corrupt" in v.stdout
+    out = run_json(toy)
+    assert statuses(out)["base"] == "ran"
+    assert statuses(out)["scaled"] == "cutoff"  # same content as before the damage
+    assert {n["name"]: n["key"] for n in out["nodes"]} == {n["name"]: n["key"] for n in first["nodes"]}
+    assert cli(toy, "verify").returncode == 0
+    assert len(list((toy / "artifacts" / "corrupt").glob(f"{key}-*.h5"))) == 1
+
+
+def _digests(store: Path) -> dict:
+    recs = [json.loads(p.read_text()) for p in (store / "index").glob("*.json")]
+    return {r["instance"]: (r["key"], r["digest"]) for r in recs}
+
+
+@pytest.mark.parametrize("executor", ["process", "dask"])
+def test_parallel_executors_match_serial(toy, executor):
+    run_json(toy, "--store", "serial")
+    out = run_json(toy, "--store", "par", "--executor", executor, "--jobs", "2", timeout=300)
+    assert set(statuses(out).values()) == {"ran"}
+    assert _digests(toy / "par") == _digests(toy / "serial")
+    assert len(_digests(toy / "serial")) == 6
+
+
+def test_dask_scheduler_address(toy):
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        out = run_json(toy, "--executor", "dask", "--address", cluster.scheduler_address, timeout=300)
+    assert set(statuses(out).values()) == {"ran"}
+    p = cli(toy, "run", "--executor", "dask", "--address", "tcp://127.0.0.1:1", check=False, timeout=120)
+    assert p.returncode == 2 and p.stderr.count("\n") == 1 and "cannot reach Dask scheduler" in p.stderr
+
+
+def test_node_failure_is_reported_with_traceback(toy):
+    f = toy / "toy" / "nodes.py"
+    f.write_text(f.read_text().replace('    _log("scaled")', '    _log("scaled")\n    raise ValueError("bad scale")'))
+    p = cli(toy, "run", check=False)
+    assert p.returncode == 1
+    assert "Traceback" in p.stderr and p.stderr.strip().splitlines()[-1] == \
+        "pipeline: error: node scaled failed: ValueError: bad scale"
+    assert json.loads(cli(toy, "status", "--json", "base").stdout)["nodes"][0]["status"] == "cached"
+
+
+# -- bad input: one line, exit 2, never a traceback ------------------------------------
+
+@pytest.mark.parametrize("args,message", [
+    (["run", "nope"], "unknown target 'nope'"),
+    (["run", "shifted[letter=c]"], "no instance of 'shifted' has those values"),
+    (["run", "-p", "seed=x"], "param 'seed' (-p seed=x) must be int, got str 'x'"),
+    (["run", "-p", "sead=1"], "unknown param 'sead' (-p sead=1); did you mean 'seed'?"),
+    (["run", "--profile", "huge"], "unknown profile 'huge' (known: default, small)"),
+    (["run", "--jobs", "many"], "argument --jobs: invalid int value: 'many'"),
+    (["show", "ffffff"], "no artifact with key 'ffffff'"),
+    (["get", "base"], "base is not built (missing); run `pipeline run 'base'`"),
+    (["frobnicate"], "argument verb: invalid choice: 'frobnicate'"),
+])
+def test_bad_input_one_line_exit_2(toy, args, message):
+    p = cli(toy, *args, check=False)
+    assert p.returncode == 2, p.stderr
+    assert p.stderr.count("\n") == 1 and "Traceback" not in p.stderr
+    assert message in p.stderr
+
+
+def test_malformed_params_file_names_line(toy):
+    (toy / "params" / "small.yaml").write_text("size: 8\nseed: [1\n")
+    p = cli(toy, "status", "--profile", "small", check=False)
+    assert p.returncode == 2 and "malformed YAML in" in p.stderr and "small.yaml:3" in p.stderr
+
+
+_keys = st.sampled_from(["seed", "scale", "size", "letters", "offset.a", "offset", "slow", "sede",
+                         "offset.c", "", "a.b.c", "seed.x"])
+_values = st.one_of(st.text(max_size=12), st.integers().map(str), st.floats(allow_nan=True).map(str),
+                    st.sampled_from(["[1, 2]", "[a, b]", "{a: 1}", "true", "null", "[", "{", ":", "'"]))
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(key=_keys, value=_values, sep=st.sampled_from(["=", "", " = ", "=="]))
+def test_fuzz_params_clean_errors(toy, monkeypatch, capsys, key, value, sep):
+    monkeypatch.chdir(toy)
+    rc = main(["status", "-p", f"{key}{sep}{value}"])
+    err = capsys.readouterr().err
+    assert rc in (0, 2)
+    if rc == 2:
+        assert err.startswith("pipeline: error: ") and err.count("\n") == 1
+    else:
+        assert err == ""
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(target=st.one_of(st.text(max_size=20), st.sampled_from(
+    ["shifted[letter=a]", "shifted[*]", "shifted[", "base]", "[x=1]", "shifted[letter=a,letter=b]",
+     "shifted[letter=a]]", "summary[x=1]", "sha\x00", "shifted[letter=a, letter=a]"])))
+def test_fuzz_targets_clean_errors(toy, monkeypatch, capsys, target):
+    monkeypatch.chdir(toy)
+    rc = main(["status", "--", target])
+    err = capsys.readouterr().err
+    assert rc in (0, 2)
+    if rc == 2:
+        assert err.startswith("pipeline: error: ") and err.count("\n") == 1
