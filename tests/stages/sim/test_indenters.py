@@ -1,0 +1,228 @@
+import numpy as np
+import pytest
+import trimesh
+
+from stages.sim import indenters as I
+from stages.sim.indenters import (ALL_INDENTERS, INDENTERS, SEEN, UNSEEN, export_ply,
+                                  grid_coords, height_map, indenter_meta, make_indenter)
+
+# Expected bounding-box extents (x, y, z) in mm, from the documented shape definitions.
+# Tolerance 0.01 mm (polygonised circles put vertices on the +-x/+-y extremes; the sphere's
+# sampled arc misses its equator by < 0.001 mm).
+EXTENTS_TOL = 0.01
+EXPECTED_EXTENTS = {
+    "cone": (10, 10, 8),
+    "cylinder": (8, 8, 10),
+    "cylinder_sh": (8, 8, 10),
+    "cylinder_si": (10, 6, 6),
+    "dotin": (8, 8, 10),
+    "dots": (10, 10, 8),
+    "hemisphere": (12, 12, 6),
+    "hexagon": (8, 8 * np.sqrt(3) / 2, 10),
+    "line": (10, 1, 10),
+    "moon": (5.25, 8, 10),
+    "pacman": (4 + 4 * np.cos(np.pi / 6), 8, 10),
+    "prism": (8, 10, 6),
+    "random": (10, 10, 10),
+    "sphere": (8, 8, 12),
+    "sphere_s": (4, 4, 10),
+    "torus": (10, 10, 8),
+    "triangle": (4.5 * 1.5, 4.5 * np.sqrt(3), 10),
+    "wave": (10, 10, 8),
+    "calib_prism": (12, 15, 6),
+    "calib_cone": (12, 12, 6),
+}
+
+
+def test_names_and_groups():
+    assert len(INDENTERS) == 18 and len(set(INDENTERS)) == 18
+    assert len(SEEN) == 12 and len(UNSEEN) == 6
+    assert set(SEEN).isdisjoint(UNSEEN) and set(SEEN) | set(UNSEEN) == set(INDENTERS)
+    assert ALL_INDENTERS[:18] == INDENTERS and set(EXPECTED_EXTENTS) == set(ALL_INDENTERS)
+
+
+@pytest.mark.parametrize("name", ALL_INDENTERS)
+def test_mesh_is_watertight_with_expected_bbox(name):
+    mesh = make_indenter(name)
+    assert mesh.is_watertight and mesh.is_winding_consistent
+    assert mesh.volume > 0
+    np.testing.assert_allclose(mesh.extents, EXPECTED_EXTENTS[name], atol=EXTENTS_TOL)
+    lo, hi = mesh.bounds
+    assert abs(lo[2]) < 1e-9, "tip must be at z = 0"
+    np.testing.assert_allclose((lo[:2] + hi[:2]) / 2, 0.0, atol=1e-9)
+    meta = indenter_meta(name)
+    assert meta["group"] == ("calibration" if name.startswith("calib") else
+                             "unseen" if name in UNSEEN else "seen")
+    np.testing.assert_allclose(meta["bbox"], mesh.bounds)
+
+
+def test_volumes_match_geometry():
+    # 64-gon revolutions: area factor sin(2pi/64)*64/(2pi) = 0.9984.
+    poly = 64 * np.sin(2 * np.pi / 64) / (2 * np.pi)
+    assert make_indenter("cylinder").volume == pytest.approx(np.pi * 16 * 10 * poly, rel=1e-6)
+    assert make_indenter("cylinder_sh").volume == pytest.approx(np.pi * 7 * 10 * poly, rel=1e-6)
+    assert make_indenter("line").volume == pytest.approx(100.0, rel=1e-9)
+    assert make_indenter("prism").volume == pytest.approx(0.5 * 8 * 6 * 10, rel=1e-9)
+    assert make_indenter("cone").volume == pytest.approx(np.pi * 25 * 8 / 3 * poly, rel=1e-6)
+
+
+def test_copies_are_independent_and_random_is_deterministic():
+    a = make_indenter("random")
+    a.apply_translation([1.0, 0.0, 0.0])
+    b = make_indenter("random")
+    assert abs(b.bounds[0, 0] + 5.0) < 1e-9
+    rebuilt = I._finish(I._build("random"))
+    np.testing.assert_allclose(np.sort(rebuilt.vertices, axis=0), np.sort(b.vertices, axis=0))
+
+
+def test_unknown_name_raises():
+    with pytest.raises(KeyError):
+        make_indenter("banana")
+    with pytest.raises(KeyError):
+        height_map("banana", shape=8, spacing=1.0)
+
+
+def test_export_ply_roundtrip(tmp_path):
+    mesh = make_indenter("pacman")
+    path = tmp_path / "pacman.ply"
+    export_ply(mesh, path)
+    back = trimesh.load(path, force="mesh")
+    assert back.is_watertight
+    assert len(back.faces) == len(mesh.faces)
+    np.testing.assert_allclose(back.bounds, mesh.bounds, atol=1e-5)
+
+
+def test_grid_coords_convention():
+    x, y = grid_coords((4, 6), 0.5)
+    np.testing.assert_allclose(x, [-1.25, -0.75, -0.25, 0.25, 0.75, 1.25])
+    np.testing.assert_allclose(y, [-0.75, -0.25, 0.25, 0.75])
+
+
+def test_sphere_height_map_matches_spherical_cap():
+    n, spacing, R, c = 128, 20 / 128, 4.0, (0.3, -0.7)
+    hm = height_map("sphere", shape=(n, n), spacing=spacing, position=c)
+    x, y = grid_coords(n, spacing)
+    r = np.hypot(x[None, :] - c[0], y[:, None] - c[1])
+    inner = r < 0.9 * R
+    cap = R - np.sqrt(R ** 2 - r[inner] ** 2)
+    # Tolerance: 64-section revolve sags < 0.005 mm radially; slope <= 2.1 inside 0.9 R.
+    np.testing.assert_allclose(hm[inner], cap, atol=0.015)
+    centre = r < 0.5 * R
+    np.testing.assert_allclose(hm[centre], R - np.sqrt(R ** 2 - r[centre] ** 2), atol=0.006)
+    finite = np.isfinite(hm)
+    assert np.all(r[finite] <= R + 1e-6) and np.all(finite[r < R - 0.05])
+
+
+def test_cone_height_is_linear_in_radius():
+    n, spacing = 96, 0.2
+    hm = height_map("cone", shape=n, spacing=spacing)
+    x, y = grid_coords(n, spacing)
+    r = np.hypot(x[None, :], y[:, None])
+    m = r < 4.5  # inside the base radius 5, away from the rim
+    # Apex-down cone, base radius 5 at height 8: h = 1.6 r (64-gon: r is the inscribed radius
+    # on facets, so h lies between 1.6 r and 1.6 r / cos(pi/64)).
+    assert np.all(hm[m] >= 1.6 * r[m] - 1e-9)
+    assert np.all(hm[m] <= 1.6 * r[m] / np.cos(np.pi / 64) + 1e-9)
+
+
+FLAT = ("cylinder", "cylinder_sh", "hexagon", "line", "dots", "dotin")
+LINE_CONTACT = ("cylinder_si", "prism", "torus", "wave")  # contact along lines or a ring
+
+
+@pytest.mark.parametrize("name", FLAT + LINE_CONTACT)
+@pytest.mark.parametrize("pos", [(0.0, 0.0), (-4.0, 4.0), (2.3, -1.7)])
+def test_contact_cells_are_centred_on_position(name, pos):
+    # For these shapes the contact set is symmetric about the tip reference (the x-y bbox
+    # centre); triangle, moon, pacman and random are not, by construction.
+    n, spacing = 128, 20 / 128
+    hm = height_map(name, shape=(n, n), spacing=spacing, position=pos)
+    if name in FLAT:
+        assert np.min(hm) == 0.0
+        weight = (hm <= 1e-9).astype(float)
+    else:
+        # cell centres miss the contact line by < 1 cell; steepest flank is the prism (1.5)
+        assert np.min(hm) <= 1.5 * spacing
+        # a band about the contact line(s), weighted by closeness so that the cell count in
+        # each band (which depends on sub-cell phase) does not bias the centroid
+        weight = np.clip(0.2 - hm, 0.0, None)
+    x, y = grid_coords(n, spacing)
+    cx = (weight.sum(0) * x).sum() / weight.sum()
+    cy = (weight.sum(1) * y).sum() / weight.sum()
+    assert abs(cx - pos[0]) <= spacing and abs(cy - pos[1]) <= spacing
+
+
+def test_triangle_contact_centroid_is_offset_from_bbox_centre():
+    # The triangle's corner is on +x and its bbox is centred, so its face centroid sits at
+    # x = -1.125 mm (circumradius 4.5: bbox x in [-2.25, 4.5] before centring).
+    n, spacing = 128, 20 / 128
+    hm = height_map("triangle", shape=(n, n), spacing=spacing, position=(1.0, 2.0))
+    x, y = grid_coords(n, spacing)
+    ii, jj = np.nonzero(hm == 0.0)
+    assert abs(x[jj].mean() - (1.0 - 1.125)) <= spacing and abs(y[ii].mean() - 2.0) <= spacing
+
+
+# Largest height at a cell centre no more than half a cell diagonal (0.111 mm) from the tip,
+# plus < 0.003 mm tessellation sag for the spheres.
+CURVED_MAX = {"sphere": 0.004, "sphere_s": 0.006, "hemisphere": 0.004, "cone": 0.18,
+              "calib_cone": 0.112}
+
+
+@pytest.mark.parametrize("name", sorted(CURVED_MAX))
+def test_curved_tip_minimum_at_position(name):
+    n, spacing, pos = 128, 20 / 128, (1.1, -3.3)
+    hm = height_map(name, shape=(n, n), spacing=spacing, position=pos)
+    i, j = np.unravel_index(np.argmin(hm), hm.shape)
+    x, y = grid_coords(n, spacing)
+    assert abs(x[j] - pos[0]) <= spacing / 2 + 1e-9 and abs(y[i] - pos[1]) <= spacing / 2 + 1e-9
+    assert hm[i, j] <= CURVED_MAX[name]
+
+
+def test_flat_punch_contact_area():
+    n, spacing = 128, 20 / 128
+    hm = height_map("cylinder", shape=n, spacing=spacing, position=(0.5, 0.5))
+    area = np.count_nonzero(hm <= 1e-9) * spacing ** 2
+    assert area == pytest.approx(np.pi * 16, rel=0.03)
+    assert np.isinf(hm).sum() + np.count_nonzero(hm <= 1e-9) == hm.size  # flat: 0 or absent
+
+
+def test_yaw_rotates_footprint():
+    n, spacing = 101, 0.2  # odd grid: the centre cell is at the origin
+    base = np.isfinite(height_map("line", shape=n, spacing=spacing))
+    rot = np.isfinite(height_map("line", shape=n, spacing=spacing, yaw_deg=90.0))
+    x, y = grid_coords(n, spacing)
+    ii, jj = np.nonzero(base)
+    assert np.ptp(x[jj]) > 9 and np.ptp(y[ii]) < 1.1  # 10 x 1 mm bar along x
+    ii, jj = np.nonzero(rot)
+    assert np.ptp(y[ii]) > 9 and np.ptp(x[jj]) < 1.1  # now along y
+    assert np.array_equal(rot, base.T)
+    diag = np.isfinite(height_map("line", shape=n, spacing=spacing, yaw_deg=45.0))
+    ii, jj = np.nonzero(diag)
+    assert np.corrcoef(x[jj], y[ii])[0, 1] > 0.95  # counter-clockwise: along +x+y
+
+
+def test_yaw_moves_pacman_mouth():
+    n, spacing = 101, 0.2
+    x, y = grid_coords(n, spacing)
+    j3, j0, i3, i0 = np.argmin(abs(x - 3)), np.argmin(abs(x)), np.argmin(abs(y - 3)), \
+        np.argmin(abs(y))
+    h0 = height_map("pacman", shape=n, spacing=spacing)
+    h90 = height_map("pacman", shape=n, spacing=spacing, yaw_deg=90.0)
+    assert np.isinf(h0[i0, j3]) and np.isfinite(h0[i3, j0])  # mouth opens to +x
+    assert np.isinf(h90[i3, j0]) and np.isfinite(h90[i0, j3])  # mouth opens to +y
+
+
+def test_height_map_accepts_mesh_and_off_pad_is_empty():
+    mesh = make_indenter("hexagon")
+    a = height_map(mesh, shape=(40, 50), spacing=0.4, position=(1.0, 2.0), yaw_deg=30.0)
+    b = height_map("hexagon", shape=(40, 50), spacing=0.4, position=(1.0, 2.0), yaw_deg=30.0)
+    assert a.shape == (40, 50) and a.dtype == np.float64
+    np.testing.assert_array_equal(a, b)
+    assert np.all(np.isinf(height_map("hexagon", shape=32, spacing=0.5, position=(30, 0))))
+
+
+def test_height_map_rows_follow_y():
+    n, spacing = 64, 0.25
+    hm = height_map("sphere_s", shape=n, spacing=spacing, position=(0.0, 5.0))
+    x, y = grid_coords(n, spacing)
+    ii, _ = np.nonzero(np.isfinite(hm))
+    assert abs(y[ii].mean() - 5.0) < spacing
