@@ -130,7 +130,7 @@ class Scheduler:
         results: dict[str, Planned] = {}
         ran: set[str] = set()
         pending = list(names)
-        running: dict[Any, tuple[str, str, dict, float]] = {}
+        running: dict[Any, tuple[str, str, dict]] = {}
         failure: tuple[str, dict] | None = None
         bar = _bar(len(names)) if progress else None
         self.store.init()
@@ -155,13 +155,13 @@ class Scheduler:
                         raise PipelineError(f"source node {n} has no artifact for these params; "
                                             f"capture it explicitly with `pipeline run '{n}'`")
                     fut = executor.submit(execute, self._task(inst, key, parts, force and n in explicit))
-                    running[fut] = (n, key, parts, time.time())
+                    running[fut] = (n, key, parts)
                 if not running:
                     if pending and failure is None:
                         raise PipelineError(f"cannot schedule {pending[0]}: an input is unavailable")
                     break
                 for fut in executor.wait(list(running)):
-                    n, key, parts, t0 = running.pop(fut)
+                    n, key, parts = running.pop(fut)
                     out = executor.result(fut)
                     if "error" in out:
                         failure = failure or (n, out)
@@ -171,7 +171,8 @@ class Scheduler:
                     if out["computed"]:
                         ran.add(n)
                     status = "ran" if out["computed"] else "cached"
-                    results[n] = Planned(n, status, "", key, rec, round(time.time() - t0, 4), parts)
+                    seconds = rec.get("seconds", 0.0) if out["computed"] else 0.0
+                    results[n] = Planned(n, status, "", key, rec, seconds, parts)
                     self._ref(n, rec, parts)
                     if bar:
                         bar.update(1)

@@ -295,3 +295,26 @@ def rasterize(markers: MarkerSet, *, size=(568, 568), supersample: int = 4) -> n
 def marker_texture(markers: MarkerSet, *, size=(568, 568), supersample: int = 4) -> np.ndarray:
     """Antialiased float32 coverage in [0, 1], for use as a rendering texture."""
     return _coverage(markers, size, supersample)
+
+
+def reference_set(names, *, size, gelsight_twins=GELSIGHT_TWINS, seed: int = 0) -> dict:
+    """Node `patterns`: reference marker images of the simulation patterns and sensor twins.
+
+    Per pattern: `images/<name>` (H,W) uint8 0/255 and `markers/<name>/centers|axes|angles`
+    in mm on the undeformed pad.
+    """
+    from stages.figures import contact_sheet, png
+    sets = {n: pattern(n, seed=0) for n in names}
+    sets.update({f"gelsight-{t}": gelsight_pattern(t, seed=seed) for t in gelsight_twins})
+    sets["tactip"] = tactip_pattern()
+    sets["uskin"] = uskin_pattern()
+    h, w = size
+    images = {n: rasterize(m, size=(h, w)) for n, m in sets.items()}
+    return {
+        "names": list(sets),
+        "images": images,
+        "markers": {n: {"centers": m.centers, "axes": m.axes, "angles": m.angles,
+                        "pad_size_mm": np.asarray(m.pad_size_mm, float)} for n, m in sets.items()},
+        "figures": {"patterns": png(contact_sheet(list(images.values()), cols=6))},
+        "attrs": {"image_size": [h, w]},
+    }

@@ -358,3 +358,26 @@ def height_map(mesh_or_name, *, shape, spacing: float, position=(0.0, 0.0),
     if px != 0.0 or py != 0.0:
         tris = tris + np.array([px, py, 0.0])
     return _rasterise(tris, h, w, float(spacing))
+
+
+def indenter_set(names) -> dict:
+    """Node `indenters`: every named mesh (vertices mm, faces) with its metadata."""
+    names = list(names)
+    metas = [indenter_meta(n) for n in names]
+    meshes = {n: {"vertices": make_indenter(n).vertices.astype(np.float32),
+                  "faces": make_indenter(n).faces.astype(np.int32)} for n in names}
+    return {
+        "names": names,
+        "group": [m["group"] for m in metas],
+        "extents": np.array([m["extents"] for m in metas], np.float32),
+        "volume_mm3": np.array([m["volume_mm3"] for m in metas]),
+        "meshes": meshes,
+        "attrs": {"units": "mm", "convention": "tip lowest point at z=0, body towards +z"},
+    }
+
+
+def mesh_from_artifact(art, name: str) -> "trimesh.Trimesh":
+    """Rebuild one mesh from an `indenters` artifact (or any mapping of the same layout)."""
+    import trimesh
+    return trimesh.Trimesh(np.asarray(art[f"meshes/{name}/vertices"]),
+                            np.asarray(art[f"meshes/{name}/faces"]), process=False)

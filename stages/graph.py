@@ -1,0 +1,31 @@
+"""The whole GenForce data flow in one place: every node, the function it calls, the
+artifacts and params keys it reads, and what it fans out over.
+
+Functions are named by import path so that deciding what is stale imports no science.
+"""
+from pipeline import Graph
+
+GRAPH = Graph()
+
+# -- simulation twin: shapes and where they press ---------------------------------------
+GRAPH.node("indenters", "stages.sim.indenters:indenter_set",
+           params={"names": "indenters.names"},
+           description="the 18 paper indenters + calibration prism/cone as watertight meshes")
+GRAPH.node("sim_trajectory", "stages.sim.trajectory:sim_grid_trajectory",
+           params={"positions_mm": "sim_trajectory.positions_mm", "depths_mm": "sim_trajectory.depths_mm",
+                   "indenters": "sim_trajectory.indenters"},
+           description="the paper's simulation grid: positions x depths per indenter")
+GRAPH.node("collection_trajectory", "stages.sim.trajectory:collection_trajectory",
+           params={k: f"collection_trajectory.{k}" for k in (
+               "n_points", "point_offset_mm", "depth_step_mm", "max_depth_mm", "shear_radius_mm",
+               "n_directions", "rate_hz", "speed_mm_s", "indenters")},
+           description="the real-collection protocol: 5 points, depth steps, 8 shear directions")
+GRAPH.node("calibration_trajectory", "stages.sim.trajectory:calibration_trajectory",
+           params={k: f"calibration_trajectory.{k}" for k in (
+               "max_depth_mm", "n_steps", "repetitions", "indenter", "rate_hz")},
+           description="3 indentations to d_max and back, for material compensation")
+
+# -- marker representation ----------------------------------------------------------------
+GRAPH.node("patterns", "stages.markers.patterns:reference_set",
+           params={"names": "patterns.names", "size": "patterns.image_size", "seed": "patterns.twin_seed"},
+           description="reference marker images: 12 sim patterns, GelSight twins, TacTip, uSkin")

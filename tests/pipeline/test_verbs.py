@@ -1,0 +1,115 @@
+"""The inspection verbs and their --json contracts; metrics baselines; dvc export."""
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from toyproject import cli, run_json, statuses
+
+
+def test_ls_show_get(toy):
+    out = run_json(toy)
+    keys = {n["name"]: n["key"] for n in out["nodes"]}
+    rows = json.loads(cli(toy, "ls", "--json").stdout)
+    assert {r["name"] for r in rows} == set(keys)
+    assert all(set(r) == {"name", "node", "key", "path", "bytes", "created"} for r in rows)
+    assert all(Path(r["path"]).stat().st_size == r["bytes"] for r in rows)
+    show = json.loads(cli(toy, "show", "frames", "--json").stdout)
+    assert show["datasets"] == {"images": {"shape": [40, 4, 4], "dtype": "uint8"},
+                                "reference": {"shape": [4, 4], "dtype": "uint8"},
+                                "t": {"shape": [40], "dtype": "float64"}}
+    assert show["attrs"] == {"n": 16} and show["provenance"]["inputs"] == {"base": keys["base"]}
+    by_key = json.loads(cli(toy, "show", keys["frames"][:10], "--json").stdout)
+    assert by_key["key"] == keys["frames"]
+    assert cli(toy, "get", "shifted[letter=b]").stdout.strip().endswith(f"{keys['shifted[letter=b]']}.h5")
+    p = cli(toy, "get", "shifted", check=False)
+    assert p.returncode == 2 and "names 2 instances" in p.stderr
+
+
+def test_dag_formats(toy):
+    dag = json.loads(cli(toy, "dag", "--json", "summary").stdout)
+    assert [n["name"] for n in dag["nodes"]] == ["base", "scaled", "shifted[letter=a]", "shifted[letter=b]",
+                                                 "frames", "summary"]
+    assert ["shifted[letter=a]", "summary"] in dag["edges"] and len(dag["edges"]) == 7
+    dot = cli(toy, "dag", "--dot").stdout
+    assert dot.startswith("digraph pipeline") and '"scaled" -> "shifted[letter=b]";' in dot
+
+
+def test_metrics_and_baseline(toy, tmp_path):
+    run_json(toy)
+    m = json.loads(cli(toy, "metrics", "--json").stdout)
+    assert m["toy/frames"] == 40.0 and set(m) == {"toy/frames", "toy/total"}
+    base = tmp_path / "baseline.yaml"
+    cli(toy, "metrics", "--save-baseline", str(base))
+    doc = yaml.safe_load(base.read_text())
+    assert doc["metrics"] == m
+    assert cli(toy, "metrics", "--baseline", str(base)).returncode == 0
+    # a baseline 10 better than now: a regression unless the tolerance allows 10
+    doc["metrics"]["toy/total"] = m["toy/total"] - 10
+    doc["tolerances"] = {"toy/*": {"abs": 1.0}}
+    base.write_text(yaml.safe_dump(doc))
+    p = cli(toy, "metrics", "--baseline", str(base), check=False)
+    assert p.returncode == 1 and "REGRESSION toy/total" in p.stdout and "1 regressions in 2 metrics" in p.stdout
+    doc["tolerances"] = {"toy/total": {"rel": 20 / abs(m["toy/total"])}}
+    base.write_text(yaml.safe_dump(doc))
+    assert cli(toy, "metrics", "--baseline", str(base)).returncode == 0
+    doc["metrics"]["toy/gone"] = 1.0
+    base.write_text(yaml.safe_dump(doc))
+    p = cli(toy, "metrics", "--baseline", str(base), check=False)
+    assert p.returncode == 1 and "toy/gone" in p.stdout and "missing" in p.stdout
+
+
+def test_report_from_store(toy):
+    run_json(toy)
+    out = cli(toy, "report", "--out", "rep").stdout.strip()
+    page = Path(toy / "rep" / "index.html").read_text()
+    assert out.endswith("rep/index.html") and "toy/total" in page and "shifted[letter=a]" in page
+
+
+def test_gc_keeps_current(toy):
+    run_json(toy)
+    run_json(toy, "-p", "seed=4")
+    run_json(toy, "-p", "seed=5")
+    # seed=5 is the current plan, the refs and the last run; seed=3 and 4 are only in older runs
+    assert "12 artifacts to remove" in cli(toy, "gc", "--keep-runs", "1", "--dry-run", "-p", "seed=5").stdout
+    assert "6 artifacts removed" in cli(toy, "gc", "--keep-runs", "2", "-p", "seed=5").stdout
+    assert "6 artifacts removed" in cli(toy, "gc", "--keep-runs", "1", "-p", "seed=5").stdout
+    assert set(statuses(run_json(toy, "-p", "seed=5")).values()) == {"cached"}
+    assert statuses(run_json(toy))["base"] == "ran"
+
+
+def _env_with_bin():
+    bin_dir = str(Path(sys.executable).parent)
+    repo = str(Path(__file__).resolve().parents[2])
+    return {**os.environ, "PATH": bin_dir + os.pathsep + os.environ["PATH"], "PYTHONPATH": repo}
+
+
+def test_dvc_export_and_repro(toy):
+    pytest.importorskip("dvc")
+    cli(toy, "dvc")
+    doc = yaml.safe_load((toy / "dvc.yaml").read_text())
+    stage = doc["stages"]["shifted__letter-a"]
+    assert stage["cmd"] == "pipeline run 'shifted[letter=a]'"
+    assert stage["params"] == ["letters", "offset.a"]
+    assert stage["deps"] == ["artifacts/refs/scaled.json", "toy/nodes.py"]
+    assert doc["stages"]["scaled"]["deps"] == ["artifacts/refs/base.json", "toy/helpers.py", "toy/nodes.py"]
+    assert cli(toy, "dvc", "--check").returncode == 0
+    env = _env_with_bin()
+    dvc = [sys.executable, "-m", "dvc"]
+    subprocess.run(dvc + ["init", "--no-scm", "-q"], cwd=toy, env=env, check=True)
+    r = subprocess.run(dvc + ["repro"], cwd=toy, env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert set(statuses(run_json(toy)).values()) == {"cached"}
+    r = subprocess.run(dvc + ["repro"], cwd=toy, env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and "Running stage" not in r.stdout
+    (toy / "params.yaml").write_text((toy / "params.yaml").read_text().replace("b: 5.0", "b: 6.0"))
+    r = subprocess.run(dvc + ["repro"], cwd=toy, env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and "Running stage 'shifted__letter-b'" in r.stdout
+    assert "Running stage 'shifted__letter-a'" not in r.stdout
+    (toy / "dvc.yaml").write_text("stages: {}\n")
+    assert cli(toy, "dvc", "--check", check=False).returncode == 1
