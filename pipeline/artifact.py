@@ -9,6 +9,8 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Iterator, Mapping
 
@@ -20,8 +22,10 @@ from pipeline.hashing import ContentDigest
 
 COMPRESS_MIN_BYTES = 1 << 16
 CHUNK_BYTES = 1 << 20
+ASYNC_HASH_BYTES = 1 << 18
 READ_BLOCK_BYTES = 1 << 24
 _STR = h5py.string_dtype("utf-8")
+PROVENANCE_ATTR = "pipeline"  # one JSON attribute: node, params, code, inputs, digest, ...
 
 
 def _as_array(name: str, value: Any) -> np.ndarray:
@@ -68,6 +72,22 @@ class ArtifactWriter:
         self._streams: dict[str, h5py.Dataset] = {}
         self._whole: set[str] = set()
         self._t0 = time.time()
+        # sha256 releases the GIL: hashing on a thread overlaps it with HDF5's writes
+        self._hasher = ThreadPoolExecutor(1, thread_name_prefix="digest")
+        self._pending: deque = deque()
+
+    def _hash(self, fn, name, arr, **kwargs) -> None:
+        if arr.nbytes < ASYNC_HASH_BYTES:  # a thread hop costs more than hashing a small array
+            fn(name, arr, **kwargs)
+            return
+        self._pending.append(self._hasher.submit(fn, name, arr, **kwargs))
+        while len(self._pending) > 8:  # bounds the chunks held for hashing
+            self._pending.popleft().result()
+
+    def _drain(self) -> None:
+        while self._pending:
+            self._pending.popleft().result()
+        self._hasher.shutdown()
 
     def put(self, name: str, value: Any) -> None:
         if name in self._streams or name in self._whole:
@@ -79,7 +99,7 @@ class ArtifactWriter:
             self.file.create_dataset(name, data=arr, compression="lzf", chunks=True)
         else:
             self.file.create_dataset(name, data=arr)
-        self.digest.update_whole(name, arr)
+        self._hash(self.digest.update_whole, name, arr)
         self._whole.add(name)
 
     def append(self, name: str, chunk: Any) -> None:
@@ -101,15 +121,16 @@ class ArtifactWriter:
         n = ds.shape[0]
         ds.resize(n + arr.shape[0], axis=0)
         ds[n:] = arr
-        self.digest.update(name, arr, dtype=arr.dtype.str, shape_tail=arr.shape[1:])
+        self._hash(self.digest.update, name, arr, dtype=arr.dtype.str, shape_tail=arr.shape[1:])
 
     def set_attrs(self, attrs: Mapping[str, Any]) -> None:
         for k, v in attrs.items():
-            if k.startswith("pipeline."):
+            if k == PROVENANCE_ATTR:
                 raise PipelineError(f"attribute name '{k}' is reserved")
             self.attrs[k] = _plain_attr(k, v)
 
     def commit(self) -> dict:
+        self._drain()
         for name in self._streams:  # an empty stream is still a dataset
             if name not in self.digest._datasets:
                 ds = self._streams[name]
@@ -122,8 +143,7 @@ class ArtifactWriter:
                 "metrics": self.metrics}
         for k, v in self.attrs.items():
             self.file.attrs[k] = v
-        for k, v in prov.items():
-            self.file.attrs[f"pipeline.{k}"] = v if isinstance(v, (str, int, float)) else json.dumps(v)
+        self.file.attrs[PROVENANCE_ATTR] = json.dumps(prov, sort_keys=True)
         self.file.flush()
         self.file.close()
         record = {k: prov.get(k) for k in ("key", "digest", "node", "instance", "created",
@@ -131,6 +151,7 @@ class ArtifactWriter:
         return self.store._publish(self.key, self.tmp, record)
 
     def abort(self) -> None:
+        self._hasher.shutdown(cancel_futures=True)
         try:
             self.file.close()
         finally:
@@ -184,18 +205,11 @@ class Artifact(Mapping):
 
     @property
     def attrs(self) -> dict[str, Any]:
-        return {k: _read_attr(v) for k, v in self._file.attrs.items() if not k.startswith("pipeline.")}
+        return _user_attrs(self._file)
 
     @property
     def provenance(self) -> dict[str, Any]:
-        out = {}
-        for k, v in self._file.attrs.items():
-            if k.startswith("pipeline."):
-                v = _read_attr(v)
-                if isinstance(v, str) and v[:1] in "{[":
-                    v = json.loads(v)
-                out[k[len("pipeline."):]] = v
-        return out
+        return _provenance(self._file)
 
     @property
     def metrics(self) -> dict[str, float]:
@@ -221,6 +235,15 @@ def _read_attr(v: Any) -> Any:
     return v
 
 
+def _user_attrs(f: h5py.File) -> dict[str, Any]:
+    return {k: _read_attr(v) for k, v in f.attrs.items() if k != PROVENANCE_ATTR}
+
+
+def _provenance(f: h5py.File) -> dict[str, Any]:
+    text = _read_attr(f.attrs.get(PROVENANCE_ATTR, "{}"))
+    return json.loads(text) if isinstance(text, str) else {}
+
+
 def _dataset_names(f: h5py.File) -> list[str]:
     names: list[str] = []
     f.visititems(lambda n, o: names.append(n) if isinstance(o, h5py.Dataset) else None)
@@ -243,16 +266,15 @@ def content_digest(f: h5py.File) -> str:
         for i in range(0, ds.shape[0], step):
             block = np.ascontiguousarray(ds[i:i + step])
             d.update(name, block, dtype=ds.dtype.str, shape_tail=ds.shape[1:])
-    attrs = {k: _read_attr(v) for k, v in f.attrs.items() if not k.startswith("pipeline.")}
-    metrics = json.loads(_read_attr(f.attrs.get("pipeline.metrics", "{}")))
-    return d.hexdigest({"attrs": attrs, "metrics": metrics})
+    metrics = _provenance(f).get("metrics", {})
+    return d.hexdigest({"attrs": _user_attrs(f), "metrics": metrics})
 
 
 def verify_file(path: Path) -> tuple[bool, str]:
     """(ok, message): re-digest the content and compare with the stored digest."""
     try:
         with h5py.File(path, "r") as f:
-            stored = _read_attr(f.attrs.get("pipeline.digest", ""))
+            stored = _provenance(f).get("digest", "")
             if not stored:
                 return False, "no content digest (incomplete artifact)"
             actual = content_digest(f)

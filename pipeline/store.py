@@ -1,7 +1,7 @@
 """Content-addressed artifact store: one HDF5 file per cache key.
 
 Layout under the store root:
-  objects/<key>.h5      the artifact; provenance in root attributes "pipeline.*"
+  objects/<key>.h5      the artifact; provenance in its root attribute "pipeline" (JSON)
   index/<key>.json      a small record (digest, size, mtime...) so that deciding
                         "nothing to do" never opens HDF5
   refs/<instance>.json  the key last built for each node instance (for status and gc)
@@ -32,11 +32,11 @@ RECORD_FIELDS = ("key", "digest", "node", "instance", "path", "bytes", "mtime_ns
 
 
 def _atomic_write_text(path: Path, text: str) -> None:
+    """Whole or absent, never half-written. Not fsync'd: index records and refs are
+    hints rebuilt from the artifacts themselves, which are fsync'd."""
     tmp = path.with_name(f".tmp-{path.name}-{os.getpid()}-{uuid.uuid4().hex[:8]}")
     with open(tmp, "w") as f:
         f.write(text)
-        f.flush()
-        os.fsync(f.fileno())
     os.replace(tmp, path)
 
 

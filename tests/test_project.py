@@ -42,3 +42,17 @@ def test_ci_profile_runs_and_is_then_cached(tmp_path):
     again = json.loads(pipeline("run", "--profile", "ci", "--json", "--store", store).stdout)
     assert {n["status"] for n in again["nodes"]} == {"cached"}
     assert pipeline("verify", "--store", store).returncode == 0
+
+
+def test_noop_run_imports_no_science(tmp_path):
+    """Deciding that nothing is stale must not import torch, mitsuba, cv2 or even h5py."""
+    store = str(tmp_path / "store")
+    pipeline("run", "--profile", "ci", "--store", store)
+    code = ("import sys; from pipeline.cli import main; "
+            f"rc = main(['run', '--profile', 'ci', '--store', {store!r}]); "
+            "heavy = sorted(m for m in ('torch', 'mitsuba', 'cv2', 'h5py', 'trimesh', 'scipy', 'numpy') "
+            "if m in sys.modules); print('HEAVY', heavy); sys.exit(rc)")
+    p = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                       env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert p.returncode == 0, p.stderr
+    assert "HEAVY []" in p.stdout

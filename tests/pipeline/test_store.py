@@ -1,6 +1,7 @@
 """The HDF5 store: round trips, streaming, atomic publish, verification, gc, no pickles."""
 import json
 import os
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -150,3 +151,29 @@ def test_find_by_key_prefix(tmp_path):
         store.find("abcdef")
     with pytest.raises(PipelineError, match="no artifact with key 'zzz'"):
         store.find("zzz")
+
+
+STREAM_SCRIPT = """
+import resource, sys
+import numpy as np
+from pipeline.store import Store
+n = int(sys.argv[2])
+w = Store(sys.argv[1]).init().writer("k", {"node": "n", "instance": "n", "key": "k", "inputs": {}})
+rng = np.random.default_rng(0)
+for i in range(n):
+    w.append("images", rng.integers(0, 255, (16, 256, 256), dtype=np.uint8))  # 1 MiB, incompressible
+w.commit()
+print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+"""
+
+
+def test_streamed_writes_use_constant_memory(tmp_path):
+    import subprocess
+    import sys
+    rss = {}
+    for n in (20, 400):  # 20 MiB vs 400 MiB of frames
+        p = subprocess.run([sys.executable, "-c", STREAM_SCRIPT, str(tmp_path / f"s{n}"), str(n)],
+                           capture_output=True, text=True, check=True,
+                           env={**os.environ, "PYTHONPATH": str(Path(__file__).parents[2])})
+        rss[n] = int(p.stdout.split()[-1]) / 1024  # MiB
+    assert rss[400] - rss[20] < 40, rss  # 380 MiB more data, (almost) no more memory
