@@ -87,3 +87,35 @@ def test_dry_run_runs_nothing(toy):
     out = json.loads(cli(toy, "run", "--dry-run", "--json").stdout)
     assert {n["status"] for n in out["nodes"]} == {"stale"}
     assert not (toy / "artifacts" / "objects").exists() or not list((toy / "artifacts" / "objects").glob("*.h5"))
+
+
+def _add_nodes(toy, graph_lines: str, funcs: str):
+    (toy / "toy" / "graph.py").write_text((toy / "toy" / "graph.py").read_text() + graph_lines)
+    (toy / "toy" / "nodes.py").write_text((toy / "toy" / "nodes.py").read_text() + funcs)
+
+
+def test_source_node_is_never_rerun_automatically(toy):
+    _add_nodes(toy, 'GRAPH.node("capture", "toy.nodes:capture", params={"seed": "seed"}, source=True)\n'
+                    'GRAPH.node("use", "toy.nodes:use", inputs={"cap": "capture"})\n',
+               '\n\ndef capture(seed):\n    return {"force": np.full((5, 3), seed, np.float32)}\n'
+               '\n\ndef use(cap):\n    return {"n": np.array(len(cap["force"]))}\n')
+    p = cli(toy, "run", "use", check=False)
+    assert p.returncode == 2 and "source node capture has no artifact" in p.stderr
+    assert statuses(run_json(toy, "capture"))["capture"] == "ran"
+    assert statuses(run_json(toy, "use")) == {"capture": "cached", "use": "ran"}
+    f = toy / "toy" / "nodes.py"  # new capture code does not invalidate data already captured
+    f.write_text(f.read_text().replace("np.full((5, 3), seed", "np.full((6, 3), seed"))
+    assert statuses(run_json(toy, "use")) == {"capture": "cached", "use": "cached"}
+    assert statuses(run_json(toy, "capture", "--force"))["capture"] == "ran"  # recapture on request
+
+
+def test_explicit_version_overrides_code_fingerprint(toy):
+    _add_nodes(toy, 'GRAPH.node("pinned", "toy.nodes:pinned", version="1")\n',
+               '\n\ndef pinned():\n    return {"v": np.array(1)}\n')
+    assert statuses(run_json(toy, "pinned"))["pinned"] == "ran"
+    f = toy / "toy" / "nodes.py"
+    f.write_text(f.read_text().replace('"v": np.array(1)', '"v": np.array(2)'))
+    assert statuses(run_json(toy, "pinned"))["pinned"] == "cached"
+    g = toy / "toy" / "graph.py"
+    g.write_text(g.read_text().replace('version="1"', 'version="2"'))
+    assert statuses(run_json(toy, "pinned"))["pinned"] == "ran"
