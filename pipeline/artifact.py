@@ -9,8 +9,6 @@ from __future__ import annotations
 import json
 import os
 import time
-from collections import deque
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Iterator, Mapping
 
@@ -22,7 +20,6 @@ from pipeline.hashing import ContentDigest
 
 COMPRESS_MIN_BYTES = 1 << 16
 CHUNK_BYTES = 1 << 20
-ASYNC_HASH_BYTES = 1 << 18
 READ_BLOCK_BYTES = 1 << 24
 _STR = h5py.string_dtype("utf-8")
 PROVENANCE_ATTR = "pipeline"  # one JSON attribute: node, params, code, inputs, digest, ...
@@ -72,22 +69,6 @@ class ArtifactWriter:
         self._streams: dict[str, h5py.Dataset] = {}
         self._whole: set[str] = set()
         self._t0 = time.time()
-        # sha256 releases the GIL: hashing on a thread overlaps it with HDF5's writes
-        self._hasher = ThreadPoolExecutor(1, thread_name_prefix="digest")
-        self._pending: deque = deque()
-
-    def _hash(self, fn, name, arr, **kwargs) -> None:
-        if arr.nbytes < ASYNC_HASH_BYTES:  # a thread hop costs more than hashing a small array
-            fn(name, arr, **kwargs)
-            return
-        self._pending.append(self._hasher.submit(fn, name, arr, **kwargs))
-        while len(self._pending) > 8:  # bounds the chunks held for hashing
-            self._pending.popleft().result()
-
-    def _drain(self) -> None:
-        while self._pending:
-            self._pending.popleft().result()
-        self._hasher.shutdown()
 
     def put(self, name: str, value: Any) -> None:
         if name in self._streams or name in self._whole:
@@ -99,7 +80,7 @@ class ArtifactWriter:
             self.file.create_dataset(name, data=arr, compression="lzf", chunks=True)
         else:
             self.file.create_dataset(name, data=arr)
-        self._hash(self.digest.update_whole, name, arr)
+        self.digest.update_whole(name, arr)
         self._whole.add(name)
 
     def append(self, name: str, chunk: Any) -> None:
@@ -121,7 +102,8 @@ class ArtifactWriter:
         n = ds.shape[0]
         ds.resize(n + arr.shape[0], axis=0)
         ds[n:] = arr
-        self._hash(self.digest.update, name, arr, dtype=arr.dtype.str, shape_tail=arr.shape[1:])
+        # hashed before returning: the caller may refill the same buffer for the next chunk
+        self.digest.update(name, arr, dtype=arr.dtype.str, shape_tail=arr.shape[1:])
 
     def set_attrs(self, attrs: Mapping[str, Any]) -> None:
         for k, v in attrs.items():
@@ -130,7 +112,6 @@ class ArtifactWriter:
             self.attrs[k] = _plain_attr(k, v)
 
     def commit(self) -> dict:
-        self._drain()
         for name in self._streams:  # an empty stream is still a dataset
             if name not in self.digest._datasets:
                 ds = self._streams[name]
@@ -151,7 +132,6 @@ class ArtifactWriter:
         return self.store._publish(self.key, self.tmp, record)
 
     def abort(self) -> None:
-        self._hasher.shutdown(cancel_futures=True)
         try:
             self.file.close()
         finally:
@@ -169,8 +149,10 @@ class LazyArray:
         return self.shape[0]
 
     def __getitem__(self, item):
-        out = self._ds[item]
-        return out.astype(str) if self._ds.dtype.kind == "O" else out
+        if self._ds.dtype.kind == "O":  # UTF-8 strings
+            out = self._ds.asstr()[item]
+            return np.asarray(out, dtype=object) if isinstance(out, np.ndarray) else out
+        return self._ds[item]
 
     def __array__(self, dtype=None, copy=None):
         arr = self[()]
@@ -178,7 +160,7 @@ class LazyArray:
 
     def iter_chunks(self, rows: int) -> Iterator[np.ndarray]:
         for i in range(0, self.shape[0], rows):
-            yield self._ds[i:i + rows]
+            yield self[i:i + rows]
 
 
 class Artifact(Mapping):

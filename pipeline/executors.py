@@ -67,7 +67,7 @@ class DaskExecutor(InlineExecutor):
                 self._cluster = LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True,
                                              dashboard_address=None)
                 self.client = Client(self._cluster)
-        except (OSError, TimeoutError) as exc:
+        except (OSError, TimeoutError, ValueError) as exc:
             raise PipelineError(f"cannot reach Dask scheduler at {address}: {exc}") from None
 
     def submit(self, fn, task):

@@ -47,7 +47,19 @@ def load_baseline(path: Path) -> dict:
     tol = doc.get("tolerances") or {}
     if not isinstance(tol, dict) or not all(isinstance(v, dict) for v in tol.values()):
         raise PipelineError(f"baseline {path}: 'tolerances' must map globs to {{abs, rel}}")
+    for name, value in doc["metrics"].items():
+        if not _number(value):
+            raise PipelineError(f"baseline {path}: metric '{name}' must be a number, got {value!r}")
+    for glob, t in tol.items():
+        for k, v in t.items():
+            if k not in ("abs", "rel") or not _number(v) or v < 0:
+                raise PipelineError(f"baseline {path}: tolerance '{glob}' {k}={v!r}: "
+                                    "expected abs or rel, a number >= 0")
     return {"metrics": doc["metrics"], "tolerances": tol}
+
+
+def _number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
 def tolerance(name: str, tolerances: dict) -> float:

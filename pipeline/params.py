@@ -40,6 +40,8 @@ def _load_yaml(path: Path) -> tuple[Any, dict[str, int]]:
         text = path.read_text()
     except OSError as exc:
         raise PipelineError(f"cannot read params file {path}: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise PipelineError(f"params file {path} is not UTF-8 text (byte {exc.start})") from None
     try:
         node = yaml.compose(text, Loader=Loader)
         data = safe_load(text)
@@ -54,6 +56,9 @@ def _load_yaml(path: Path) -> tuple[Any, dict[str, int]]:
         if isinstance(n, yaml.MappingNode):
             for k, v in n.value:
                 key = f"{prefix}.{k.value}" if prefix else str(k.value)
+                if key in lines:
+                    raise PipelineError(f"duplicate param '{key}' in {path}:{k.start_mark.line + 1} "
+                                        f"(first at line {lines[key]})")
                 lines[key] = k.start_mark.line + 1
                 walk(v, key)
 
@@ -65,6 +70,16 @@ def _load_yaml(path: Path) -> tuple[Any, dict[str, int]]:
     return data, lines
 
 
+def _plain_yaml(v: Any) -> bool:
+    if v is None or isinstance(v, (bool, int, float, str)):
+        return True
+    if isinstance(v, list):
+        return all(_plain_yaml(x) for x in v)
+    if isinstance(v, dict):
+        return all(isinstance(k, str) and _plain_yaml(x) for k, x in v.items())
+    return False
+
+
 def _type_name(v: Any) -> str:
     return {bool: "bool", int: "int", float: "float", str: "str", list: "list",
             dict: "mapping", type(None): "null"}.get(type(v), type(v).__name__)
@@ -72,7 +87,10 @@ def _type_name(v: Any) -> str:
 
 def _check_value(key: str, default: Any, value: Any, where: str) -> Any:
     """Return value coerced to the default's type, or raise naming key and place."""
-    if default is None:
+    if default is None:  # untyped: any plain YAML value that hashes the same everywhere
+        if not _plain_yaml(value):
+            raise PipelineError(f"param '{key}' ({where}) must be a number, string, bool, list "
+                                f"or mapping, got {type(value).__name__} {value!r}")
         return value
     if isinstance(default, bool) or isinstance(value, bool):
         ok = isinstance(default, bool) and isinstance(value, bool)

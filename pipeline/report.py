@@ -10,6 +10,8 @@ import json
 import time
 from pathlib import Path
 
+from pipeline.errors import PipelineError
+
 CSS = """body{font-family:system-ui,sans-serif;margin:2em;max-width:1200px;color:#222}
 table{border-collapse:collapse;margin:1em 0}td,th{border:1px solid #ccc;padding:3px 8px;font-size:13px}
 th{background:#f3f3f3}.stale{color:#b00}code{font-size:12px}figure{display:inline-block;margin:8px}
@@ -18,7 +20,10 @@ img{max-width:520px;border:1px solid #ddd}details{margin:4px 0}"""
 
 def write(planned, store, out_dir: Path, *, title: str = "Pipeline report") -> Path:
     out_dir = Path(out_dir)
-    (out_dir / "figures").mkdir(parents=True, exist_ok=True)
+    try:
+        (out_dir / "figures").mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise PipelineError(f"cannot write report to {out_dir}: {exc.strerror}") from None
     esc = html.escape
     rows, figs, metrics, prov = [], [], {}, []
     for p in planned:

@@ -46,7 +46,7 @@ class Scheduler:
             if node.source:  # captured data outlives the capture code
                 self._code[node.name] = "source"
             elif node.version is not None:
-                self._code[node.name] = f"v:{node.version}"
+                self._code[node.name] = f"v:{node.version}:{node.func}"
             else:
                 self._code[node.name] = self.fingerprinter.fingerprint(node.func)
         return self._code[node.name]

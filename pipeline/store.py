@@ -25,11 +25,6 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from pipeline.errors import PipelineError
-from pipeline.hashing import canonical
-
-RECORD_FIELDS = ("key", "digest", "node", "instance", "path", "bytes", "mtime_ns",
-                 "created", "seconds", "host", "metrics", "inputs")
-
 
 def _atomic_write_text(path: Path, text: str) -> None:
     """Whole or absent, never half-written. Not fsync'd: index records and refs are
@@ -122,7 +117,7 @@ class Store:
         """Move a damaged artifact aside (kept for inspection) and forget its record."""
         self.corrupt.mkdir(parents=True, exist_ok=True)
         src = self.path(key)
-        dest = self.corrupt / f"{key}-{int(time.time())}.h5"
+        dest = self.corrupt / f"{key}-{int(time.time())}-{uuid.uuid4().hex[:6]}.h5"
         try:
             os.replace(src, dest)
             (self.corrupt / f"{dest.stem}.txt").write_text(why + "\n")
@@ -194,7 +189,7 @@ class Store:
     def writer(self, key: str, provenance: dict[str, Any]):
         from pipeline.artifact import ArtifactWriter
         self.init()
-        tmp = self.objects / f".tmp-{key}-{os.getpid()}-{uuid.uuid4().hex[:8]}.h5"
+        tmp = self.objects / f".tmp-{key}-{os.getpid()}-{uuid.uuid4().hex[:8]}-{socket.gethostname()}.h5"
         return ArtifactWriter(self, key, tmp, provenance)
 
     def _publish(self, key: str, tmp: Path, record: dict) -> dict:
@@ -259,14 +254,31 @@ class Store:
                 for p in (self.path(key), self._index_path(key), self.locks / f"{key}.lock"):
                     with contextlib.suppress(FileNotFoundError):
                         p.unlink()
-        if not dry_run:  # temp files of writers that are gone
+        if not dry_run:
             for p in self.objects.glob(".tmp-*"):
-                pid = p.name.split("-")[2] if p.name.count("-") >= 3 else ""
-                if not pid.isdigit() or not _alive(int(pid)):
+                if _abandoned(p):
                     p.unlink(missing_ok=True)
             for p in runs[:-keep_runs] if keep_runs > 0 else runs:
                 p.unlink(missing_ok=True)
         return removed
+
+
+TMP_MAX_AGE_S = 24 * 3600
+
+
+def _abandoned(tmp: Path) -> bool:
+    """A writer's temp file whose writer is gone: a dead process on this host, or (for
+    writers on other hosts sharing the store, whose processes we cannot see) a day old."""
+    parts = tmp.name[len(".tmp-"):-len(".h5")].split("-", 3)  # key, pid, uuid, host
+    try:
+        age = time.time() - tmp.stat().st_mtime
+    except OSError:
+        return False
+    if age > TMP_MAX_AGE_S:
+        return True
+    if len(parts) == 4 and parts[1].isdigit() and parts[3] == socket.gethostname():
+        return not _alive(int(parts[1]))
+    return False
 
 
 def _alive(pid: int) -> bool:
@@ -279,5 +291,3 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def describe(rec: dict) -> str:
-    return canonical({k: rec.get(k) for k in RECORD_FIELDS})

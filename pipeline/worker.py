@@ -13,6 +13,7 @@ import math
 import sys
 import time
 import traceback
+from pathlib import Path
 from typing import Any, Mapping
 
 from pipeline.errors import PipelineError
@@ -20,12 +21,56 @@ from pipeline.errors import PipelineError
 _RESERVED = ("attrs", "metrics")
 
 
-def _import(ref: str):
+_LOADED: dict[str, tuple[int, int]] = {}  # project source file -> (mtime_ns, size) at import
+_ENGINE = Path(__file__).resolve().parent
+
+
+def _stat(path: Path) -> tuple[int, int]:
+    try:
+        st = path.stat()
+        return st.st_mtime_ns, st.st_size
+    except OSError:
+        return (0, 0)
+
+
+def _project_modules(roots: list[str]) -> dict[str, Path]:
+    """Loaded modules whose top-level package lives directly in a project root."""
+    tops = {}
+    for r in roots:
+        for p in Path(r).iterdir() if Path(r).is_dir() else []:
+            tops[p.stem if p.suffix == ".py" else p.name] = p
+    out = {}
+    for name, mod in list(sys.modules.items()):
+        f = getattr(mod, "__file__", None)
+        top = tops.get(name.split(".")[0])
+        if f and top is not None:
+            path = Path(f).resolve()
+            if path.is_relative_to(top.resolve()) and not path.is_relative_to(_ENGINE):
+                out[name] = path
+    return out
+
+
+def _import(ref: str, roots: list[str]):
+    """Import a node function, never from code older than the files on disk.
+
+    A long-lived process (a Dask worker, a notebook) keeps modules it imported; when any
+    project source file changed since, every project module is forgotten and re-imported,
+    so the code that runs is the code the cache key was computed from.
+    """
+    loaded = _project_modules(roots)
+    if any(_stat(p) != _LOADED[str(p)] for p in loaded.values() if str(p) in _LOADED):
+        for name in loaded:
+            del sys.modules[name]
+        _LOADED.clear()
+        importlib.invalidate_caches()
     module, _, name = ref.partition(":")
     try:
-        return getattr(importlib.import_module(module), name)
+        func = getattr(importlib.import_module(module), name)
     except (ImportError, AttributeError) as exc:
         raise PipelineError(f"cannot import node function '{ref}': {exc}") from None
+    for p in _project_modules(roots).values():
+        _LOADED.setdefault(str(p), _stat(p))
+    return func
 
 
 def _flatten(mapping: Mapping[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
@@ -92,7 +137,7 @@ def execute(task: dict) -> dict:
         opened: list[Artifact] = []
         writer = None
         try:
-            func = _import(task["func"])
+            func = _import(task["func"], task.get("roots", []))
             kwargs: dict[str, Any] = dict(task["grid"])
             kwargs.update(task["params"])
             for arg, ref in task["inputs"].items():

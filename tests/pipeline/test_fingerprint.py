@@ -57,7 +57,7 @@ def make(tmp_path, mod=MOD, util=UTIL, other=OTHER):
 
 
 def test_pinned(tmp_path):
-    assert make(tmp_path) == "ddd3a67adc90f93f"
+    assert make(tmp_path) == "c01dec97d3bb6c51"
 
 
 def test_comments_docstrings_formatting_do_not_count(tmp_path):
@@ -106,3 +106,43 @@ def test_files_lists_dependency_modules(tmp_path):
     make(tmp_path)
     files = Fingerprinter([tmp_path]).files("pkg.mod:node")
     assert [f.rsplit("/", 1)[-1] for f in files] == ["mod.py", "other.py", "util.py"]
+
+
+HELPERS = "def h1(x):\n    return x + 1\n\n\ndef other(x):\n    return x\n"
+
+# each case: a node module using pkg.helpers.h1 in one of the ways Python allows
+USAGES = {
+    "local import": "def node(x):\n    from pkg.helpers import h1\n    return h1(x)\n",
+    "star import": "from pkg.helpers import *\n\n\ndef node(x):\n    return h1(x)\n",
+    "try import": ("try:\n    from pkg.helpers import h1\nexcept ImportError:\n    h1 = None\n\n\n"
+                   "def node(x):\n    return h1(x)\n"),
+    "def under if": ("import sys\nif sys.version_info > (3,):\n    from pkg.helpers import h1\n\n"
+                     "    def node(x):\n        return h1(x)\n"),
+    "dotted chain": "import pkg.sub.deep\n\n\ndef node(x):\n    return pkg.sub.deep.g(x)\n",
+    "module as value": "from pkg import helpers\n\n\ndef node(x):\n    return getattr(helpers, 'h1')(x)\n",
+    "relative import": "from .helpers import h1\n\n\ndef node(x):\n    return h1(x)\n",
+    "registry statement": ("from pkg.helpers import h1\nREG = {}\nREG.update(scale=1)\n\n\n"
+                           "def node(x):\n    return h1(x) * REG['scale']\n"),
+}
+
+
+def _fp(tmp_path, mod, helpers=HELPERS, deep="def g(x):\n    return x * 2\n", reg="REG.update(scale=1)"):
+    pkg = tmp_path / "pkg"
+    (pkg / "sub").mkdir(parents=True, exist_ok=True)
+    for f, text in {"__init__.py": "", "sub/__init__.py": "", "helpers.py": helpers,
+                    "sub/deep.py": deep, "mod.py": mod.replace("REG.update(scale=1)", reg)}.items():
+        (pkg / f).write_text(text)
+    return Fingerprinter([tmp_path]).fingerprint("pkg.mod:node")
+
+
+@pytest.mark.parametrize("usage", list(USAGES))
+def test_every_way_of_using_a_helper_is_followed(tmp_path, usage):
+    mod = USAGES[usage]
+    fp = _fp(tmp_path, mod)
+    if usage == "dotted chain":
+        assert _fp(tmp_path, mod, deep="def g(x):\n    return x * 3\n") != fp
+    elif usage == "registry statement":
+        assert _fp(tmp_path, mod, reg="REG.update(scale=2)") != fp
+    else:
+        assert _fp(tmp_path, mod, helpers=HELPERS.replace("x + 1", "x + 2")) != fp
+    assert _fp(tmp_path, mod) == fp  # and deterministic

@@ -119,3 +119,25 @@ def test_explicit_version_overrides_code_fingerprint(toy):
     g = toy / "toy" / "graph.py"
     g.write_text(g.read_text().replace('version="1"', 'version="2"'))
     assert statuses(run_json(toy, "pinned"))["pinned"] == "ran"
+
+
+def test_long_lived_process_runs_current_code(toy, monkeypatch, capsys):
+    """A process that already imported the node's module (a Dask worker, a notebook) must
+    not compute a new key with old code."""
+    import sys
+    import numpy as np
+    import h5py
+    from pipeline.cli import main
+    for name in [m for m in sys.modules if m == "toy" or m.startswith("toy.")]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.chdir(toy)
+    assert main(["run", "scaled", "--json"]) == 0
+    first = json.loads(capsys.readouterr().out)["nodes"][-1]
+    f = toy / "toy" / "helpers.py"
+    f.write_text(f.read_text().replace("return (x - x.mean())", "return 10 * (x - x.mean())"))
+    assert main(["run", "scaled", "--json"]) == 0
+    second = json.loads(capsys.readouterr().out)["nodes"][-1]
+    assert second["status"] == "ran" and second["key"] != first["key"]
+    objects = toy / "artifacts" / "objects"
+    with h5py.File(objects / f"{first['key']}.h5") as a, h5py.File(objects / f"{second['key']}.h5") as b:
+        np.testing.assert_allclose(b["x"][()], 10 * a["x"][()], rtol=1e-5)

@@ -46,6 +46,7 @@ def test_profile_and_overrides_apply_in_order(base):
     ("sizes: [1, x]\n", r"param 'sizes\[1\]' \(.*ci.yaml:1\) must be int, got str 'x'"),
     ("seed: [1\nlr: 2\n", r"malformed YAML in .*ci.yaml:2"),
     ("- a\n- b\n", r"must hold a mapping"),
+    ("seed: 2\nlr: 0.1\nseed: 3\n", r"duplicate param 'seed' in .*ci.yaml:3 \(first at line 1\)"),
 ])
 def test_profile_errors_name_key_and_line(base, text, message):
     name = overlay(base, text)
@@ -65,6 +66,20 @@ def test_profile_errors_name_key_and_line(base, text, message):
 def test_override_errors(base, override, message):
     with pytest.raises(PipelineError, match=message):
         P.load(base, None, [override])
+
+
+def test_non_utf8_profile(base):
+    (base.parent / "params" / "bin.yaml").write_bytes(b"\xff\xfeseed: 1\n")
+    with pytest.raises(PipelineError, match=r"bin.yaml is not UTF-8 text \(byte 0\)"):
+        P.load(base, "bin")
+
+
+def test_untyped_param_accepts_plain_values_only(tmp_path):
+    f = tmp_path / "params.yaml"
+    f.write_text("extra: null\n")
+    assert P.load(f, None, ["extra=[1, a]"])["extra"] == [1, "a"]
+    with pytest.raises(PipelineError, match=r"param 'extra' .* must be a number, string, bool, list or mapping, got date"):
+        P.load(f, None, ["extra=2020-01-01"])
 
 
 def test_unknown_profile_lists_known(base):

@@ -142,12 +142,27 @@ def test_node_failure_is_reported_with_traceback(toy):
     (["show", "ffffff"], "no artifact with key 'ffffff'"),
     (["get", "base"], "base is not built (missing); run `pipeline run 'base'`"),
     (["frobnicate"], "argument verb: invalid choice: 'frobnicate'"),
+    (["run", "--executor", "dask", "--address", "foo"], "cannot reach Dask scheduler at foo"),
+    (["report", "--out", "/proc/nope"], "cannot write report to /proc/nope"),
 ])
 def test_bad_input_one_line_exit_2(toy, args, message):
     p = cli(toy, *args, check=False)
     assert p.returncode == 2, p.stderr
     assert p.stderr.count("\n") == 1 and "Traceback" not in p.stderr
     assert message in p.stderr
+
+
+@pytest.mark.parametrize("text,message", [
+    ("metrics: {toy/total: x}\n", "metric 'toy/total' must be a number, got 'x'"),
+    ("metrics: {toy/total: 1}\ntolerances: {'toy/*': {abs: x}}\n", "tolerance 'toy/*' abs='x'"),
+    ("[1, 2]\n", "must have a 'metrics' mapping"),
+])
+def test_bad_baseline_one_line(toy, tmp_path, text, message):
+    run_json(toy)
+    f = tmp_path / "b.yaml"
+    f.write_text(text)
+    p = cli(toy, "metrics", "--baseline", str(f), check=False)
+    assert p.returncode == 2 and p.stderr.count("\n") == 1 and message in p.stderr
 
 
 def test_malformed_params_file_names_line(toy):

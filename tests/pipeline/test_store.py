@@ -134,12 +134,22 @@ def test_gc_keeps_refs_recent_runs_and_their_inputs(tmp_path):
     rec["inputs"] = {"up": "c"}
     store.write_record(rec)
     store.write_ref("node_b", {"key": "b"})
-    (store.objects / ".tmp-z-999999-abc.h5").write_bytes(b"partial")
+    import socket
+    host = socket.gethostname()
+    dead = store.objects / f".tmp-z-999999-abc-{host}.h5"       # a dead writer on this host
+    dead.write_bytes(b"partial")
+    live = store.objects / f".tmp-y-{os.getpid()}-abc-{host}.h5"  # this process: alive
+    live.write_bytes(b"partial")
+    remote = store.objects / ".tmp-x-1-abc-otherhost.h5"          # another host: kept a day
+    remote.write_bytes(b"partial")
+    old = store.objects / ".tmp-w-1-abc-otherhost.h5"
+    old.write_bytes(b"partial")
+    os.utime(old, (0, 0))
     assert store.gc(set(), dry_run=True) == ["a", "d"]
     assert store.path("a").exists()
     assert store.gc({"d"}) == ["a"]
-    assert sorted(p.stem for p in store.objects.glob("*.h5")) == ["b", "c", "d"]
-    assert not (store.objects / ".tmp-z-999999-abc.h5").exists()
+    assert [p.stem for p in store.object_paths()] == ["b", "c", "d"]
+    assert not dead.exists() and not old.exists() and live.exists() and remote.exists()
 
 
 def test_find_by_key_prefix(tmp_path):
@@ -177,3 +187,26 @@ def test_streamed_writes_use_constant_memory(tmp_path):
                            env={**os.environ, "PYTHONPATH": str(Path(__file__).parents[2])})
         rss[n] = int(p.stdout.split()[-1]) / 1024  # MiB
     assert rss[400] - rss[20] < 40, rss  # 380 MiB more data, (almost) no more memory
+
+
+def test_reused_buffer_and_mixed_chunk_sizes_digest_correctly(tmp_path):
+    store = Store(tmp_path).init()
+    w = store.writer("k", {"node": "n", "instance": "n", "key": "k", "inputs": {}})
+    buf = np.empty((8, 128, 128), np.uint8)  # 128 KiB, refilled for every chunk
+    for j in range(10):
+        buf[:] = j
+        w.append("images", buf)
+    w.append("images", np.full((1, 128, 128), 99, np.uint8))  # a small last chunk
+    w.commit()
+    assert verify_file(store.path("k")) == (True, "ok")
+    with Artifact(store.path("k")) as a:
+        assert [int(a["images"][i * 8, 0, 0]) for i in range(10)] == list(range(10))
+
+
+def test_unicode_strings_round_trip(tmp_path):
+    store = Store(tmp_path).init()
+    write(store, "k", names=["bé", "Ω-pad"], label="tactip-é")
+    with Artifact(store.path("k")) as a:
+        assert list(a["names"][()]) == ["bé", "Ω-pad"] and a["label"][()] == "tactip-é"
+        assert [list(c) for c in a["names"].iter_chunks(1)] == [["bé"], ["Ω-pad"]]
+    assert verify_file(store.path("k")) == (True, "ok")
