@@ -173,7 +173,7 @@ class Scheduler:
                     status = "ran" if out["computed"] else "cached"
                     seconds = rec.get("seconds", 0.0) if out["computed"] else 0.0
                     results[n] = Planned(n, status, "", key, rec, seconds, parts)
-                    self._ref(n, rec, parts)
+                    self._ref(n, rec, parts, changed=out["computed"])
                     if bar:
                         bar.update(1)
                         bar.set_postfix_str(n, refresh=False)
@@ -189,10 +189,10 @@ class Scheduler:
             raise NodeFailed(n, out["error"], out.get("traceback", ""))
         return [results[n] for n in names]
 
-    def _ref(self, name: str, rec: dict, parts: dict) -> None:
+    def _ref(self, name: str, rec: dict, parts: dict, changed: bool = False) -> None:
         self.store.write_ref(name, {"key": rec["key"], "digest": rec["digest"], "code": parts["code"],
                                     "params_digest": parts["params_digest"],
-                                    "input_digests": parts["input_digests"]})
+                                    "input_digests": parts["input_digests"]}, changed=changed)
 
 
 def _bar(total: int):

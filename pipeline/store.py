@@ -89,13 +89,13 @@ class Store:
         """
         path = self.path(key)
         try:
-            rec = json.loads(self._index_path(key).read_text())
-        except (OSError, ValueError):
-            rec = None
-        try:
             st = path.stat()
         except OSError:
             return None
+        try:
+            rec = json.loads(self._index_path(key).read_text())
+        except (OSError, ValueError):
+            rec = None
         if rec is not None and (not check or (rec["bytes"] == st.st_size and rec["mtime_ns"] == st.st_mtime_ns)):
             return rec
         # no index (crash between the two renames) or a changed file: trust only content
@@ -157,13 +157,15 @@ class Store:
         except (OSError, ValueError):
             return None
 
-    def write_ref(self, instance: str, ref: dict) -> None:
-        """Only rewritten when it changes: dvc watches these files."""
+    def write_ref(self, instance: str, ref: dict, *, changed: bool = False) -> None:
+        """Only rewritten when it changes (dvc watches these files); `changed` skips the
+        comparison when the caller knows."""
         path = self.refs / f"{safe_name(instance)}.json"
         text = json.dumps(ref, indent=1, sort_keys=True) + "\n"
-        with contextlib.suppress(OSError):
-            if path.read_text() == text:
-                return
+        if not changed:
+            with contextlib.suppress(OSError):
+                if path.read_text() == text:
+                    return
         _atomic_write_text(path, text)
 
     def log_run(self, keys: list[str], meta: dict) -> None:

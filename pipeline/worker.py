@@ -33,20 +33,33 @@ def _stat(path: Path) -> tuple[int, int]:
         return (0, 0)
 
 
+_TOPS: dict[tuple[str, ...], dict[str, Path]] = {}
+_PATHS: dict[tuple[str, int], Path | None] = {}
+
+
 def _project_modules(roots: list[str]) -> dict[str, Path]:
     """Loaded modules whose top-level package lives directly in a project root."""
-    tops = {}
-    for r in roots:
-        for p in Path(r).iterdir() if Path(r).is_dir() else []:
-            tops[p.stem if p.suffix == ".py" else p.name] = p
+    key = tuple(roots)
+    if key not in _TOPS:
+        tops = {}
+        for r in roots:
+            for p in Path(r).iterdir() if Path(r).is_dir() else []:
+                tops.setdefault(p.stem if p.suffix == ".py" else p.name, p.resolve())
+        _TOPS[key] = tops
+    tops = _TOPS[key]
     out = {}
     for name, mod in list(sys.modules.items()):
-        f = getattr(mod, "__file__", None)
-        top = tops.get(name.split(".")[0])
-        if f and top is not None:
-            path = Path(f).resolve()
-            if path.is_relative_to(top.resolve()) and not path.is_relative_to(_ENGINE):
-                out[name] = path
+        top = tops.get(name.partition(".")[0])
+        if top is None:
+            continue
+        ck = (name, id(mod))
+        if ck not in _PATHS:
+            f = getattr(mod, "__file__", None)
+            path = Path(f).resolve() if f else None
+            ok = path is not None and path.is_relative_to(top) and not path.is_relative_to(_ENGINE)
+            _PATHS[ck] = path if ok else None
+        if _PATHS[ck] is not None:
+            out[name] = _PATHS[ck]
     return out
 
 
