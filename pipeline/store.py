@@ -35,14 +35,6 @@ def _atomic_write_text(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def safe_name(instance: str) -> str:
     """'render[sensor=a]' -> 'render@sensor=a' (a file name with no brackets)."""
     return instance.replace("[", "@").replace("]", "").replace("/", "_")
@@ -201,8 +193,9 @@ class Store:
         finally:
             os.close(fd)
         final = self.path(key)
+        # no directory fsync: a rename lost to a power cut leaves the artifact missing
+        # (recomputed), never partial
         os.replace(tmp, final)
-        _fsync_dir(self.objects)
         st = final.stat()
         record.update(path=os.path.relpath(final, self.root), bytes=st.st_size,
                       mtime_ns=st.st_mtime_ns, host=socket.gethostname())
