@@ -1,6 +1,8 @@
 """Figures as PNG bytes (uint8 arrays), so nodes can store them under "figures/"."""
 from __future__ import annotations
 
+import io
+
 import numpy as np
 
 
@@ -14,6 +16,15 @@ def png(image: np.ndarray) -> np.ndarray:
     if not ok:
         raise ValueError("PNG encoding failed")
     return buf.ravel()
+
+
+def figure_png(fig, dpi: int = 100) -> np.ndarray:
+    """Encode a matplotlib Figure as PNG bytes.  Figures are made with
+    ``matplotlib.figure.Figure`` (no pyplot), so no global backend or state is touched; the
+    PNG carries no software tag, so its bytes do not change with the matplotlib version."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi, metadata={"Software": None})
+    return np.frombuffer(buf.getvalue(), np.uint8).copy()
 
 
 def contact_sheet(images, cols: int, border: int = 2, fill: int = 90) -> np.ndarray:

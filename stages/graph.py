@@ -29,3 +29,22 @@ GRAPH.node("calibration_trajectory", "stages.sim.trajectory:calibration_trajecto
 GRAPH.node("patterns", "stages.markers.patterns:reference_set",
            params={"names": "patterns.names", "size": "patterns.image_size", "seed": "patterns.twin_seed"},
            description="reference marker images: 12 sim patterns, GelSight twins, TacTip, uSkin")
+
+# -- simulation twin: deformation and force labels ---------------------------------------
+GRAPH.node("deform", "stages.sim.deform:deform_sequence",
+           inputs={"indenters": "indenters", "sim_trajectory": "sim_trajectory",
+                   "collection_trajectory": "collection_trajectory"},
+           params={"spec": "sensors.{sensor}", "materials": "materials",
+                   "contacts_per_indenter": "deform.collection_contacts_per_indenter",
+                   "frame_stride": "deform.collection_frame_stride"},
+           grid={"sensor": "deform.sensors"},
+           description="FEM-lite pad deformation and force labels along the sensor's trajectory")
+GRAPH.node("calibrate", "stages.sim.deform:calibrate",
+           inputs={"indenters": "indenters", "trajectory": "calibration_trajectory"},
+           params={"spec": "sensors.{sensor}", "materials": "materials"},
+           grid={"sensor": "calibrate.sensors"},
+           description="force vs normalised depth, loading and unloading, for material compensation")
+GRAPH.node("contact_check", "stages.sim.checks:contact_check",
+           params={"spec": "sensors.sim", "materials": "materials",
+                   "radius_mm": "contact_check.radius_mm", "depths_mm": "contact_check.depths_mm"},
+           description="the contact solver's force against Hertz on the sim pad's grid")

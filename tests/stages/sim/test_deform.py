@@ -1,0 +1,187 @@
+"""Nodes deform, calibrate and contact_check called directly on plain dicts."""
+import numpy as np
+import pytest
+
+from stages.sim.checks import contact_check
+from stages.sim.deform import calibrate, deform_sequence, select_frames
+from stages.sim.indenters import ALL_INDENTERS
+from stages.sim.trajectory import calibration_trajectory, collection_trajectory, sim_grid_trajectory
+
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(scope="module")
+def collection():
+    """Sphere and cylinder at the centre, two depth levels, 4 shear directions (+x, +y, -x, -y)."""
+    return collection_trajectory(indenters=["sphere", "cylinder"], n_points=1, n_directions=4,
+                                 depth_step_mm=0.5, max_depth_mm=1.0)
+
+
+@pytest.fixture(scope="module")
+def gelsight(ci_params, indenter_artifact, collection, run_node):
+    spec = ci_params["sensors"]["gelsight-A-I"]
+    return spec, run_node(deform_sequence(
+        indenters=indenter_artifact, sim_trajectory={}, collection_trajectory=collection,
+        sensor="gelsight-A-I", spec=spec, materials=ci_params["materials"],
+        contacts_per_indenter=0, frame_stride=9))
+
+
+def _cat(chunks, key):
+    return np.concatenate([c[key] for c in chunks])
+
+
+def test_schema(gelsight):
+    spec, (chunks, final) = gelsight
+    h, w = spec["grid"]
+    n = sum(len(c["force"]) for c in chunks)
+    assert len(chunks) == 4                                   # one chunk per contact
+    assert [len(np.unique(c["contact_id"])) for c in chunks] == [1, 1, 1, 1]
+    assert len(np.unique(_cat(chunks, "contact_id"))) == 4
+    expect = {"force": (np.float32, (n, 3)), "depth": (np.float64, (n,)),
+              "normalised_depth": (np.float32, (n,)), "position": (np.float64, (n, 3)),
+              "shift": (np.float64, (n, 2)), "phase": (np.int8, (n,)),
+              "contact_id": (np.int32, (n,)), "indenter_id": (np.int16, (n,)),
+              "paired": (np.bool_, (n,)), "frame": (np.int64, (n,)),
+              "displacement": (np.float32, (n, h, w, 3)), "pressure": (np.float32, (n, h, w))}
+    for key, (dtype, shape) in expect.items():
+        arr = _cat(chunks, key)
+        assert arr.dtype == dtype and arr.shape == shape, key
+    assert final["grid_x"].shape == (w,) and final["grid_y"].shape == (h,)
+    assert np.all(final["surface_z"] == 0) and final["on_pad"].all()        # a flat pad
+    assert final["grid_x"][w // 2] == 0.0 and np.diff(final["grid_x"])[0] == spec["spacing_mm"]
+    assert bytes(final["figures"]["force_trace"][:8]) == PNG
+    assert final["attrs"]["sensor"] == "gelsight-A-I" and final["attrs"]["material"] == "r10"
+    assert final["attrs"]["frames"] == n
+    assert list(final["indenters"]) == list(ALL_INDENTERS)
+    np.testing.assert_array_equal(_cat(chunks, "position")[:, 2], -_cat(chunks, "depth"))
+
+
+def test_frames_follow_the_trajectory(gelsight, collection):
+    _, (chunks, _) = gelsight
+    frame = _cat(chunks, "frame")
+    assert np.all(np.diff(frame) > 0)
+    for key in ("depth", "shift", "phase", "contact_id", "indenter_id", "paired"):
+        np.testing.assert_array_equal(_cat(chunks, key), collection[key][frame], err_msg=key)
+    # every movement's target is kept, so each shear reaches the full 1 mm radius
+    ends = np.append(np.flatnonzero(np.diff(collection["movement_id"])), frame.max())
+    assert set(ends) <= set(frame)
+
+
+def test_pressing_force_sign(gelsight):
+    _, (chunks, _) = gelsight
+    force, depth, p = _cat(chunks, "force"), _cat(chunks, "depth"), _cat(chunks, "pressure")
+    pressed = depth > 0
+    assert np.all(force[pressed, 2] < 0)                       # the paper's sign
+    assert np.all(force[~pressed] == 0) and (~pressed).sum() == 4    # each release ends at 0
+    assert np.all(p[~pressed] == 0) and np.all(p >= 0)
+    uz = _cat(chunks, "displacement")[..., 2]
+    assert np.all(uz.min(axis=(1, 2))[pressed] < 0)            # the pad sinks under the indenter
+    press = _cat(chunks, "phase") == 0                        # no shear: the tip sinks `depth`
+    np.testing.assert_allclose(-uz.min(axis=(1, 2))[press], depth[press], rtol=0.01)
+
+
+def test_shear_directions_and_friction_memory(gelsight):
+    _, (chunks, _) = gelsight
+    force, shift, phase = _cat(chunks, "force"), _cat(chunks, "shift"), _cat(chunks, "phase")
+    indenter = _cat(chunks, "indenter_id")
+    deepest = _cat(chunks, "depth") == 1.0
+    for cid in np.unique(_cat(chunks, "contact_id")[deepest]):
+        rows = _cat(chunks, "contact_id") == cid
+        name = ALL_INDENTERS[indenter[rows][0]]
+        plus = rows & (phase == 1) & np.isclose(shift[:, 0], 1.0)
+        minus = rows & (phase == 1) & np.isclose(shift[:, 0], -1.0)
+        fx_plus, fx_minus = force[plus, 0].item(), force[minus, 0].item()
+        assert fx_plus > 0 > fx_minus                          # +x shear vs -x: opposite Fx
+        assert fx_plus == pytest.approx(-fx_minus, rel=0.1)
+        assert abs(force[plus, 1].item()) < 0.3 * fx_plus      # the +y memory is small
+        # back at zero shift after +x: the sphere slid (Q = mu P), so the pad it dragged along
+        # holds it back (Fx < 0); the flat punch stayed stuck (Q < mu P) and springs back to 0
+        back = np.flatnonzero(rows & (phase == 2) & np.all(shift == 0, axis=1))[0]
+        if name == "sphere":
+            assert force[plus, 0].item() == pytest.approx(-0.55 * force[plus, 2].item(), rel=0.02)
+            assert force[back, 0] < -0.2 * fx_plus
+        else:
+            assert fx_plus < -0.8 * 0.55 * force[plus, 2].item()
+            assert abs(force[back, 0]) < 0.02 * fx_plus
+
+
+def test_depth_scale_and_dome(ci_params, indenter_artifact, collection, run_node):
+    spec = ci_params["sensors"]["tactip"]
+    chunks, final = run_node(deform_sequence(
+        indenters=indenter_artifact, sim_trajectory={}, collection_trajectory=collection,
+        sensor="tactip", spec=spec, materials=ci_params["materials"],
+        contacts_per_indenter=1, frame_stride=27))
+    depth = _cat(chunks, "depth")
+    frame = _cat(chunks, "frame")
+    np.testing.assert_allclose(depth, 4.5 * collection["depth"][frame])    # TacTip protocol
+    assert depth.max() == 4.5 and _cat(chunks, "normalised_depth").max() == 1.0
+    assert final["surface_z"].min() < -4.0 and not final["on_pad"].all()   # 40 mm dome
+    assert np.all(_cat(chunks, "force")[depth > 0, 2] < 0)
+    too_deep = {**spec, "max_depth_mm": 4.0}
+    with pytest.raises(ValueError, match="deeper than max_depth_mm"):
+        run_node(deform_sequence(indenters=indenter_artifact, sim_trajectory={},
+                                 collection_trajectory=collection, sensor="tactip", spec=too_deep,
+                                 materials=ci_params["materials"]))
+
+
+def test_sim_sensor_follows_the_whole_sim_grid(ci_params, indenter_artifact, run_node):
+    tr = sim_grid_trajectory(positions_mm=[-4.0, 4.0], depths_mm=[0.5, 1.0], indenters=["sphere"])
+    chunks, final = run_node(deform_sequence(
+        indenters=indenter_artifact, sim_trajectory=tr, collection_trajectory={}, sensor="sim",
+        spec=ci_params["sensors"]["sim"], materials=ci_params["materials"],
+        contacts_per_indenter=1, frame_stride=9))             # collection subsampling: ignored
+    assert len(chunks) == 4 and final["attrs"]["frames"] == 8
+    fz = _cat(chunks, "force")[:, 2].reshape(4, 2)
+    assert np.all(fz[:, 1] < fz[:, 0]) and np.all(fz < 0)     # deeper presses harder
+    np.testing.assert_allclose(fz, np.tile(fz[0], (4, 1)), rtol=1e-4)   # 4 symmetric corners
+
+
+def test_select_frames():
+    tr = collection_trajectory(indenters=["sphere", "prism", "cone"])      # 5 points x 4 levels
+    frames = select_frames(tr, contacts_per_indenter=3, frame_stride=9)
+    chosen = np.isin(tr["contact_id"], tr["contact_id"][frames])
+    per_indenter = {ALL_INDENTERS[i]: len(np.unique(tr["contact_id"][chosen & (tr["indenter_id"] == i)]))
+                    for i in np.unique(tr["indenter_id"])}
+    assert per_indenter == {"sphere": 3, "prism": 3, "cone": 3}
+    assert len(np.unique(tr["depth_level"][chosen])) >= 3     # spread over depth levels
+    assert len(np.unique(tr["point_id"][chosen])) >= 3        # and over surface points
+    # whole contacts at a stride: a 1 mm shear (27 samples at 40 Hz) keeps 3, its target last
+    move = tr["movement_id"][frames]
+    shear = tr["phase"][frames] == 1
+    assert np.all(np.unique(move[shear], return_counts=True)[1] == 3)
+    assert select_frames(tr, 0, 1).size == tr["depth"].size
+
+
+def test_calibrate_hysteresis(params, indenter_artifact):
+    tr = calibration_trajectory(n_steps=6, repetitions=3)
+    out = calibrate(indenters=indenter_artifact, trajectory=tr, sensor="gelsight-A-I",
+                    spec=params["sensors"]["gelsight-A-I"], materials=params["materials"])
+    n = tr["depth"].size
+    assert out["force"].dtype == np.float32 and out["force"].shape == (n, 3)
+    assert out["loading"].dtype == bool and out["repetition"].tolist() == tr["contact_id"].tolist()
+    assert out["depth"].max() == pytest.approx(1.4)            # the paper's d_max for GelSight
+    np.testing.assert_allclose(out["normalised_depth"], out["depth"] / 1.4)
+    fz = -out["force"][:, 2]
+    for rep in range(3):
+        mine = out["repetition"] == rep
+        load = {round(d, 9): f for d, f, m in zip(out["depth"], fz, mine & out["loading"]) if m}
+        unload = {round(d, 9): f for d, f, m in zip(out["depth"], fz, mine & ~out["loading"]) if m}
+        shared = [d for d in unload if d in load and d > 0]
+        assert len(shared) == 5
+        for d in shared:                                      # hysteresis: loading > unloading
+            assert load[d] > unload[d] > 0
+            assert unload[d] / load[d] == pytest.approx(1 - 0.12, rel=1e-5)   # r10's hysteresis
+    np.testing.assert_array_equal(out["force"][out["repetition"] == 0],
+                                  out["force"][out["repetition"] == 2])
+    assert bytes(out["figures"]["force_depth"][:8]) == PNG
+
+
+def test_contact_check_against_hertz(params):
+    out = contact_check(spec=params["sensors"]["sim"], materials=params["materials"],
+                        radius_mm=4.0, depths_mm=[0.5, 1.5])
+    err = out["metrics"]["contact/hertz_rel_error"]
+    assert 0 < err < 0.02 and err == out["rel_error"].max()
+    # Hertz at 1.5 mm for R 4 mm, E 1.45e5, nu 0.45: 4/3 E* sqrt(R) d^1.5
+    assert out["force_hertz"][1] == pytest.approx(4 / 3 * 1.45e5 / (1 - 0.45 ** 2) * 2 * 1.5 ** 1.5 * 1e-6)
+    assert out["force_solver"][1] == pytest.approx(out["force_hertz"][1], rel=0.02)
+    assert bytes(out["figures"]["hertz"][:8]) == PNG
