@@ -1,5 +1,4 @@
 """Code fingerprints: comments and docstrings do not count; helpers and constants do."""
-import textwrap
 
 import pytest
 

@@ -1,7 +1,6 @@
 """The inspection verbs and their --json contracts; metrics baselines; dvc export."""
 import json
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path

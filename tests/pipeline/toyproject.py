@@ -6,7 +6,6 @@ import subprocess
 import sys
 from pathlib import Path
 import json
-import textwrap
 
 PYPROJECT = """\
 [tool.pipeline]
