@@ -381,3 +381,29 @@ def mesh_from_artifact(art, name: str) -> "trimesh.Trimesh":
     import trimesh
     return trimesh.Trimesh(np.asarray(art[f"meshes/{name}/vertices"]),
                             np.asarray(art[f"meshes/{name}/faces"]), process=False)
+
+
+def export_artifact_ply(artifact_path, out_dir) -> list:
+    """Write every mesh of an `indenters` artifact (an HDF5 file) to OUT_DIR/<name>.ply."""
+    import h5py
+    from pathlib import Path
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    with h5py.File(artifact_path, "r") as f:
+        for name in f["meshes"]:
+            path = out / f"{name}.ply"
+            export_ply(mesh_from_artifact(f, name), path)
+            written.append(path)
+    return written
+
+
+if __name__ == "__main__":  # python -m stages.sim.indenters "$(pipeline get indenters)" ply/
+    import os
+    import sys
+    if len(sys.argv) != 3:
+        sys.exit("usage: python -m stages.sim.indenters INDENTERS_ARTIFACT.h5 OUT_DIR")
+    if not os.path.isfile(sys.argv[1]):
+        sys.exit(f"no such artifact file: {sys.argv[1]!r} (see `pipeline get indenters`)")
+    for p in export_artifact_ply(sys.argv[1], sys.argv[2]):
+        print(p)

@@ -226,3 +226,18 @@ def test_height_map_rows_follow_y():
     x, y = grid_coords(n, spacing)
     ii, _ = np.nonzero(np.isfinite(hm))
     assert abs(y[ii].mean() - 5.0) < spacing
+
+
+def test_export_artifact_ply(tmp_path):
+    import h5py
+    import trimesh
+    from stages.sim.indenters import export_artifact_ply, indenter_set
+    art = indenter_set(["sphere", "line"])
+    with h5py.File(tmp_path / "ind.h5", "w") as f:
+        for name in ("sphere", "line"):
+            for k, v in art["meshes"][name].items():
+                f[f"meshes/{name}/{k}"] = v
+    paths = export_artifact_ply(tmp_path / "ind.h5", tmp_path / "ply")
+    assert sorted(p.name for p in paths) == ["line.ply", "sphere.ply"]
+    back = trimesh.load(tmp_path / "ply" / "sphere.ply")
+    assert back.is_watertight and np.allclose(back.extents, make_indenter("sphere").extents, atol=1e-4)
