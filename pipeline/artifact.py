@@ -236,10 +236,11 @@ def content_digest(f: h5py.File) -> str:
     d = ContentDigest()
     for name in _dataset_names(f):
         ds = f[name]
-        if ds.dtype.kind == "O" or ds.ndim == 0:
-            arr = ds[()]
-            arr = np.asarray(arr if ds.dtype.kind != "O" else ds.asstr()[()], dtype=None if ds.dtype.kind != "O" else object)
-            d.update_whole(name, arr)
+        if ds.dtype.kind == "O":  # strings, digested as written: an object array of str
+            d.update_whole(name, np.asarray(ds.asstr()[()], dtype=object))
+            continue
+        if ds.ndim == 0:
+            d.update_whole(name, np.asarray(ds[()]))
             continue
         row = max(1, int(np.prod(ds.shape[1:], dtype=np.int64)) * ds.dtype.itemsize)
         step = max(1, READ_BLOCK_BYTES // row)

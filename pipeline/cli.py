@@ -93,8 +93,9 @@ class Context:
     def scheduler(self):
         from pipeline import params as P
         from pipeline.scheduler import Scheduler
-        params = P.load(self.project.params_file, self.args.profile, self.args.param,
-                        self.project.profiles_dir)
+        # verbs without --profile/-p (dvc) see the default profile
+        params = P.load(self.project.params_file, getattr(self.args, "profile", None),
+                        getattr(self.args, "param", []), self.project.profiles_dir)
         graph = self.project.load_graph()
         roots = [self.project.root, *self.project.source_roots]
         return Scheduler(graph, params, self.store, list(dict.fromkeys(str(r) for r in roots)))
@@ -267,13 +268,8 @@ def cmd_gc(ctx: Context) -> int:
 
 def cmd_dvc(ctx: Context) -> int:
     from pipeline import dvc
-    from pipeline import params as P
-    from pipeline.scheduler import Scheduler
-    project = ctx.project
-    params = P.load(project.params_file)
-    roots = list(dict.fromkeys(str(r) for r in [project.root, *project.source_roots]))
-    text = dvc.export(Scheduler(project.load_graph(), params, ctx.store, roots), project)
-    path = project.root / "dvc.yaml"
+    text = dvc.export(ctx.scheduler(), ctx.project)
+    path = ctx.project.root / "dvc.yaml"
     if ctx.args.check:
         current = path.read_text() if path.exists() else ""
         if current != text:

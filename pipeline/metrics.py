@@ -9,7 +9,6 @@ when it is missing.
 from __future__ import annotations
 
 import fnmatch
-import json
 import math
 from pathlib import Path
 
@@ -91,7 +90,3 @@ def save_baseline(path: Path, current: dict[str, float]) -> None:
     if Path(path).exists():
         tol = load_baseline(path)["tolerances"]
     Path(path).write_text(yaml.safe_dump({"tolerances": tol, "metrics": current}, sort_keys=False))
-
-
-def dumps(current: dict) -> str:
-    return json.dumps(current, indent=None, sort_keys=True)

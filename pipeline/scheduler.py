@@ -54,21 +54,15 @@ class Scheduler:
         return self.graph.select(self.instances, targets)
 
     def _key(self, inst: Instance, done: dict[str, dict]) -> tuple[str, dict]:
-        def digest_of(ref):
-            if isinstance(ref, dict):
-                return {label: done[n]["digest"] for label, n in ref.items()}
-            return done[ref]["digest"]
+        def pick(field):  # per input: the upstream's field, or {label: field} for a gather
+            return {arg: {label: done[n][field] for label, n in ref.items()} if isinstance(ref, dict)
+                    else done[ref][field] for arg, ref in inst.inputs.items()}
 
-        def key_of(ref):
-            if isinstance(ref, dict):
-                return {label: done[n]["key"] for label, n in ref.items()}
-            return done[ref]["key"]
-
-        digests = {arg: digest_of(ref) for arg, ref in inst.inputs.items()}
+        digests = pick("digest")
         params = {"params": inst.params, "grid": dict(inst.bindings)}
         code = self.code(inst)
         parts = {"code": code, "params_digest": digest_obj(params), "input_digests": digests,
-                 "inputs": {arg: key_of(ref) for arg, ref in inst.inputs.items()}}
+                 "inputs": pick("key")}
         return cache_key(inst.name, code, params, digests), parts
 
     def _why(self, inst: Instance, parts: dict) -> str:
