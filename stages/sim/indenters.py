@@ -364,8 +364,10 @@ def indenter_set(names) -> dict:
     """Node `indenters`: every named mesh (vertices mm, faces) with its metadata."""
     names = list(names)
     metas = [indenter_meta(n) for n in names]
-    meshes = {n: {"vertices": make_indenter(n).vertices.astype(np.float32),
-                  "faces": make_indenter(n).faces.astype(np.int32)} for n in names}
+    meshes = {}
+    for n in names:
+        mesh = make_indenter(n)
+        meshes[n] = {"vertices": mesh.vertices.astype(np.float32), "faces": mesh.faces.astype(np.int32)}
     return {
         "names": names,
         "group": [m["group"] for m in metas],
