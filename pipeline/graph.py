@@ -36,6 +36,11 @@ class Node:
     source: bool = False             # captured data: never re-run automatically
     description: str = ""
 
+    @property
+    def grid_vars(self) -> list[str]:
+        """Grid variable names (a zipped entry "a,b" names two)."""
+        return [v.strip() for entry in self.grid for v in entry.split(",")]
+
 
 @dataclass
 class Instance:
@@ -103,10 +108,11 @@ class Graph:
             raise PipelineError(f"node '{name}': func must be 'module:function', got {func!r}")
         n = Node(name, func, dict(inputs or {}), dict(params or {}), dict(grid or {}),
                  version, source, description)
-        for arg in [*n.inputs, *n.params, *n.grid]:
+        grid_vars = n.grid_vars
+        for arg in [*n.inputs, *n.params, *grid_vars]:
             if not _NAME.match(arg):
                 raise PipelineError(f"node '{name}': invalid argument name {arg!r}")
-        clash = set(n.inputs) & set(n.params) | (set(n.inputs) | set(n.params)) & set(n.grid)
+        clash = set(n.inputs) & set(n.params) | (set(n.inputs) | set(n.params)) & set(grid_vars)
         if clash:
             raise PipelineError(f"node '{name}': argument(s) {sorted(clash)} declared twice")
         self.nodes[name] = n
@@ -115,76 +121,92 @@ class Graph:
     # -- expansion -------------------------------------------------------------------
 
     def expand(self, params: dict) -> dict[str, Instance]:
-        """All instances in topological order, inputs resolved to instance names."""
+        """All instances in topological order, inputs resolved to instance names.
+
+        Nodes expand depth first from their inputs; an input whose node name is a template
+        ("{spec[source]}[skin={skin}]") is resolved per instance, so dependencies can depend
+        on params."""
         by_node: dict[str, list[Instance]] = {}
         out: dict[str, Instance] = {}
-        for name in self._topo_nodes():
+        state: dict[str, int] = {}
+
+        def visit(name: str, stack: list[str]) -> None:
+            if state.get(name) == 2:
+                return
+            if state.get(name) == 1:
+                raise PipelineError(f"cycle in graph: {' -> '.join(stack + [name])}")
+            state[name] = 1
             node = self.nodes[name]
-            by_node[name] = []
-            for bindings in self._grid_points(node, params):
-                inst = self._instance(node, bindings, params, by_node)
-                by_node[name].append(inst)
-                out[inst.name] = inst
+            for arg, ref in node.inputs.items():  # static names first, with a clear error
+                if "{" not in ref.partition("[")[0]:
+                    up, _ = parse_selector(ref.replace("{", "").replace("}", ""))
+                    if up not in self.nodes:
+                        raise PipelineError(f"node '{name}' input '{arg}' names unknown node '{up}'")
+                    visit(up, stack + [name])
+            made = [self._instance(node, b, params, by_node, lambda up: visit(up, stack + [name]))
+                    for b in self._grid_points(node, params)]
+            by_node[name] = made
+            out.update((i.name, i) for i in made)
+            state[name] = 2
+
+        for name in self.nodes:
+            visit(name, [])
         return out
 
-    def _topo_nodes(self) -> list[str]:
-        deps = {}
-        for n in self.nodes.values():
-            ups = set()
-            for arg, ref in n.inputs.items():
-                up, _ = parse_selector(ref.replace("{", "").replace("}", ""))
-                if up not in self.nodes:
-                    raise PipelineError(f"node '{n.name}' input '{arg}' names unknown node '{up}'")
-                ups.add(up)
-            deps[n.name] = ups
-        order, state = [], {}
-
-        def visit(v, stack):
-            if state.get(v) == 2:
-                return
-            if state.get(v) == 1:
-                raise PipelineError(f"cycle in graph: {' -> '.join(stack + [v])}")
-            state[v] = 1
-            for u in sorted(deps[v]):
-                visit(u, stack + [v])
-            state[v] = 2
-            order.append(v)
-
-        for v in self.nodes:
-            visit(v, [])
-        return order
-
     def _grid_points(self, node: Node, params: dict) -> list[tuple[tuple[str, Any], ...]]:
+        """Grid points as ((var, value), ...) tuples, the product over the grid's entries.
+
+        An entry is `var: spec` or, zipped, `"a,b": spec` whose values are [a, b] lists (e.g.
+        source/target pairs).  spec is a literal list, a params key (a dict gives its keys), or
+        params keys joined by " + " (their lists concatenated, repeats dropped)."""
         points: list[tuple[tuple[str, Any], ...]] = [()]
-        for var, spec in node.grid.items():
-            values = P.get(params, spec) if isinstance(spec, str) else spec
-            if isinstance(values, dict):
-                values = list(values)
+        for entry, spec in node.grid.items():
+            names = [v.strip() for v in entry.split(",")]
+            if isinstance(spec, str):
+                values: list = []
+                for key in (k.strip() for k in spec.split("+")):
+                    got = P.get(params, key)
+                    got = list(got) if isinstance(got, dict) else got
+                    if not isinstance(got, list):
+                        raise PipelineError(f"node '{node.name}' grid '{entry}' ({key}) must be a list")
+                    values += [v for v in got if v not in values]
+            else:
+                values = spec
             if not isinstance(values, list) or not values:
-                raise PipelineError(f"node '{node.name}' grid '{var}' ({spec}) must be a non-empty list")
+                raise PipelineError(f"node '{node.name}' grid '{entry}' ({spec}) must be a non-empty list")
+            rows = []
             for v in values:
-                if not isinstance(v, (str, int, float, bool)) or not re.match(r"^[^\[\],=\s{}]+$", _fmt(v)):
-                    raise PipelineError(f"node '{node.name}' grid '{var}': invalid value {v!r}")
-            points = [p + ((var, v),) for p in points for v in values]
+                row = v if len(names) > 1 else [v]
+                if not isinstance(row, list) or len(row) != len(names):
+                    raise PipelineError(f"node '{node.name}' grid '{entry}': invalid value {v!r} "
+                                        f"(expected a list of {len(names)})")
+                for x in row:
+                    if not isinstance(x, (str, int, float, bool)) or not re.match(r"^[^\[\],=\s{}]+$", _fmt(x)):
+                        raise PipelineError(f"node '{node.name}' grid '{entry}': invalid value {x!r}")
+                rows.append(tuple(zip(names, row)))
+            points = [p + r for p in points for r in rows]
         return points
 
-    def _instance(self, node: Node, bindings, params, by_node) -> Instance:
+    def _instance(self, node: Node, bindings, params, by_node, need) -> Instance:
         env = {k: _fmt(v) for k, v in bindings}
         resolved, keys = {}, []
         for arg, key in node.params.items():
             dotted = key.format(**env)
             resolved[arg] = P.get(params, dotted)
             keys.append(dotted)
-        keys += [spec for spec in node.grid.values() if isinstance(spec, str)]
+        keys += [k.strip() for spec in node.grid.values() if isinstance(spec, str) for k in spec.split("+")]
         inst = Instance(node, tuple(bindings), resolved, param_keys=keys)
         for arg, ref in node.inputs.items():
-            try:
-                up_name, sel = parse_selector(ref.format(**env))
-            except (KeyError, IndexError):
-                raise PipelineError(f"node '{node.name}' input '{arg}': template {ref!r} "
-                                    f"uses a variable not in its grid {list(env)}") from None
+            try:  # templates use grid values and the instance's params: "{spec[source]}[skin={skin}]"
+                up_name, sel = parse_selector(ref.format(**resolved, **env))
+            except (KeyError, IndexError, TypeError, AttributeError):
+                raise PipelineError(f"node '{inst.name}' input '{arg}': template {ref!r} uses a "
+                                    f"variable or key not in its grid {list(env)} or params") from None
+            if up_name not in self.nodes:
+                raise PipelineError(f"node '{inst.name}' input '{arg}': unknown node '{up_name}'")
+            need(up_name)
             candidates = by_node[up_name]
-            up_vars = list(self.nodes[up_name].grid)
+            up_vars = self.nodes[up_name].grid_vars
             if sel is None:  # match on shared variable names
                 shared = {k: v for k, v in env.items() if k in up_vars}
                 match = [c for c in candidates if all(_fmt(dict(c.bindings)[k]) == v for k, v in shared.items())]
@@ -229,7 +251,7 @@ class Graph:
                 close = difflib.get_close_matches(node, list(self.nodes), n=1)
                 hint = f"; did you mean '{close[0]}'?" if close else ""
                 raise PipelineError(f"unknown target '{t}'{hint}")
-            grid = self.nodes[node].grid
+            grid = self.nodes[node].grid_vars
             if sel:
                 bad = set(sel) - set(grid)
                 if bad:

@@ -4,6 +4,9 @@ A task is a plain dict (keys, paths, params), so the same function runs in-proce
 a spawned process or on a Dask worker; no HDF5 object ever crosses a process boundary.
 A node function returns a mapping (datasets, plus optional "attrs" and "metrics"), or is
 a generator yielding chunks appended along axis 0 and returning that final mapping.
+A function with a `staging_dir` parameter gets `<store>/staging` (hardware capture keeps its
+resumable staging files there).  An exception whose class sets `user_error = True` (a device
+that is missing or disconnects) is reported as one line, like a PipelineError.
 """
 from __future__ import annotations
 
@@ -153,6 +156,9 @@ def execute(task: dict) -> dict:
             func = _import(task["func"], task.get("roots", []))
             kwargs: dict[str, Any] = dict(task["grid"])
             kwargs.update(task["params"])
+            if "staging_dir" in inspect.signature(func).parameters:  # capture: resumable staging
+                (store.root / "staging").mkdir(exist_ok=True)
+                kwargs["staging_dir"] = str(store.root / "staging")
             for arg, ref in task["inputs"].items():
                 if isinstance(ref, dict):
                     kwargs[arg] = {label: Artifact(store.path(k)) for label, k in ref.items()}
@@ -173,7 +179,8 @@ def execute(task: dict) -> dict:
                 writer.abort()
             if isinstance(exc, KeyboardInterrupt):
                 raise
-            user = isinstance(exc, PipelineError)
+            # errors meant for the user (bad input, a missing device): one line, no traceback
+            user = isinstance(exc, PipelineError) or getattr(exc, "user_error", False) is True
             return {"error": f"{type(exc).__name__}: {exc}" if not user else str(exc),
                     "user_error": user, "traceback": "" if user else traceback.format_exc()}
         finally:

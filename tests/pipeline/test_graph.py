@@ -78,3 +78,55 @@ def test_graph_errors():
     g.node("u", "m:u", inputs={"x": "r"})
     with pytest.raises(PipelineError, match=r"'r' matches 3 instances; use 'r\[var=...\]' or 'r\[\*\]'"):
         g.expand(PARAMS)
+
+
+def zipped_graph():
+    g = Graph()
+    g.node("markers", "m:m", grid={"skin": "skins"})
+    g.node("taxels", "m:x", grid={"skin": "taxel_skins"})
+    # the upstream node comes from the skin's params: a render or a taxel skin
+    g.node("unify", "m:u", inputs={"source": "{spec[source]}[skin={skin}]"},
+           params={"spec": "catalogue.{skin}"}, grid={"skin": "skins + taxel_skins"})
+    g.node("translate", "m:t", inputs={"src": "unify[skin={source}]", "tgt": "unify[skin={target}]"},
+           grid={"source,target": "homo.pairs + hetero.pairs"})
+    g.node("study", "m:s", inputs={"all": "translate[*]"})
+    return g
+
+
+ZPARAMS = {"skins": ["a", "b"], "taxel_skins": ["u"],
+           "catalogue": {"a": {"source": "markers"}, "b": {"source": "markers"}, "u": {"source": "taxels"}},
+           "homo": {"pairs": [["a", "b"], ["b", "a"]]}, "hetero": {"pairs": [["a", "u"], ["a", "b"]]}}
+
+
+def test_zipped_grid_concatenated_keys_and_params_templates():
+    inst = zipped_graph().expand(ZPARAMS)
+    assert inst["unify[skin=u]"].inputs == {"source": "taxels[skin=u]"}
+    assert inst["unify[skin=a]"].inputs == {"source": "markers[skin=a]"}
+    assert inst["unify[skin=a]"].param_keys == ["catalogue.a", "skins", "taxel_skins"]
+    pairs = [n for n in inst if n.startswith("translate")]
+    # hetero's [a, b] repeats a homo pair: listed once
+    assert pairs == ["translate[source=a,target=b]", "translate[source=b,target=a]",
+                     "translate[source=a,target=u]"]
+    assert inst["translate[source=a,target=u]"].inputs == {"src": "unify[skin=a]", "tgt": "unify[skin=u]"}
+    assert list(inst["study"].inputs["all"]) == ["source=a,target=b", "source=b,target=a", "source=a,target=u"]
+    # every instance comes after the instances it reads
+    order = list(inst)
+    for i in inst.values():
+        assert all(order.index(u) < order.index(i.name) for u in i.upstream())
+    g = zipped_graph()
+    assert g.select(inst, ["translate[source=a]"]) == pairs[::2]
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda p: p["homo"].update(pairs=[["a", "b", "c"]]), "grid 'source,target': invalid value ['a', 'b', 'c']"),
+    (lambda p: p["catalogue"]["a"].update(source="nowhere"), "input 'source': unknown node 'nowhere'"),
+    (lambda p: p["catalogue"]["b"].pop("source"), "node 'unify[skin=b]' input 'source': template"),
+    (lambda p: p.update(hetero={"pairs": "a,b"}), "grid 'source,target' (hetero.pairs) must be a list"),
+])
+def test_zipped_grid_and_template_errors(change, message):
+    import copy
+    params = copy.deepcopy(ZPARAMS)
+    change(params)
+    with pytest.raises(PipelineError) as err:
+        zipped_graph().expand(params)
+    assert message in str(err.value)

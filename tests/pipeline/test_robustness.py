@@ -130,6 +130,22 @@ def test_node_failure_is_reported_with_traceback(toy):
     assert json.loads(cli(toy, "status", "--json", "base").stdout)["nodes"][0]["status"] == "cached"
 
 
+def test_device_error_is_one_line_and_staging_dir_is_given(toy):
+    """A node may take `staging_dir` (<store>/staging); an exception class with
+    user_error = True (a device gone) is a one-line error, exit 2, like bad input."""
+    f = toy / "toy" / "nodes.py"
+    f.write_text(f.read_text().replace(
+        "def scale(base, scale):\n",
+        "class DeviceError(RuntimeError):\n    user_error = True\n\n\n"
+        "def scale(base, scale, staging_dir):\n"
+        "    open(os.path.join(staging_dir, 'partial.txt'), 'w').write('kept')\n"
+        "    raise DeviceError('netft 127.0.0.1:1: no reply for 2.0 s')\n"))
+    p = cli(toy, "run", check=False)
+    assert p.returncode == 2 and "Traceback" not in p.stderr
+    assert p.stderr.strip() == "pipeline: error: node scaled: netft 127.0.0.1:1: no reply for 2.0 s"
+    assert (toy / "artifacts" / "staging" / "partial.txt").read_text() == "kept"
+
+
 # -- bad input: one line, exit 2, never a traceback ------------------------------------
 
 @pytest.mark.parametrize("args,message", [
