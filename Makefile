@@ -2,7 +2,9 @@
 PY := .venv/bin/python
 STAMP := .venv/.setup-stamp
 
-.PHONY: setup run test bench dvc clean-store
+TEST_STAMP := .venv/.setup-test-stamp
+
+.PHONY: setup setup-test run test bench dvc clean-store
 
 setup: $(STAMP)
 
@@ -10,10 +12,17 @@ $(STAMP): pyproject.toml scripts/setup.sh
 	bash scripts/setup.sh
 	touch $(STAMP)
 
+# the tests also need headless Chromium (the report test)
+setup-test: $(TEST_STAMP)
+
+$(TEST_STAMP): $(STAMP)
+	bash scripts/setup.sh --test
+	touch $(TEST_STAMP)
+
 run: setup
 	.venv/bin/pipeline run
 
-test: setup
+test: setup-test
 	$(PY) -m pytest -q
 
 bench: setup

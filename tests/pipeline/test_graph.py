@@ -83,7 +83,8 @@ def test_graph_errors():
 def zipped_graph():
     g = Graph()
     g.node("markers", "m:m", grid={"skin": "skins"})
-    g.node("taxels", "m:x", grid={"skin": "taxel_skins"})
+    g.node("taxels", "m:x", inputs={"m": "markers[skin={spec[like]}]"}, params={"spec": "catalogue.{skin}"},
+           grid={"skin": "taxel_skins"})
     # the upstream node comes from the skin's params: a render or a taxel skin
     g.node("unify", "m:u", inputs={"source": "{spec[source]}[skin={skin}]"},
            params={"spec": "catalogue.{skin}"}, grid={"skin": "skins + taxel_skins"})
@@ -94,13 +95,14 @@ def zipped_graph():
 
 
 ZPARAMS = {"skins": ["a", "b"], "taxel_skins": ["u"],
-           "catalogue": {"a": {"source": "markers"}, "b": {"source": "markers"}, "u": {"source": "taxels"}},
+           "catalogue": {"a": {"source": "markers"}, "b": {"source": "markers"}, "u": {"source": "taxels", "like": "b"}},
            "homo": {"pairs": [["a", "b"], ["b", "a"]]}, "hetero": {"pairs": [["a", "u"], ["a", "b"]]}}
 
 
 def test_zipped_grid_concatenated_keys_and_params_templates():
     inst = zipped_graph().expand(ZPARAMS)
     assert inst["unify[skin=u]"].inputs == {"source": "taxels[skin=u]"}
+    assert inst["taxels[skin=u]"].inputs == {"m": "markers[skin=b]"}
     assert inst["unify[skin=a]"].inputs == {"source": "markers[skin=a]"}
     assert inst["unify[skin=a]"].param_keys == ["catalogue.a", "skins", "taxel_skins"]
     pairs = [n for n in inst if n.startswith("translate")]

@@ -98,11 +98,15 @@ def test_source_node_is_never_rerun_automatically(toy):
     _add_nodes(toy, 'GRAPH.node("capture", "toy.nodes:capture", params={"seed": "seed"}, source=True)\n'
                     'GRAPH.node("use", "toy.nodes:use", inputs={"cap": "capture"})\n',
                '\n\ndef capture(seed):\n    return {"force": np.full((5, 3), seed, np.float32)}\n'
-               '\n\ndef use(cap):\n    return {"n": np.array(len(cap["force"]))}\n')
+               '\n\ndef use(cap):\n    return {"n": np.array(len(cap["force"]))}\n'
+               '\n\ndef capture_alone(seed):\n    return {"force": np.zeros((1, 3), np.float32)}\n')
+    g = toy / "toy" / "graph.py"  # a source sink: the default targets leave it out
+    g.write_text(g.read_text() + 'GRAPH.node("rig", "toy.nodes:capture_alone", params={"seed": "seed"}, source=True)\n')
     p = cli(toy, "run", "use", check=False)
     assert p.returncode == 2 and "source node capture has no artifact" in p.stderr
     assert statuses(run_json(toy, "capture"))["capture"] == "ran"
     assert statuses(run_json(toy, "use")) == {"capture": "cached", "use": "ran"}
+    assert "rig" not in statuses(run_json(toy))
     f = toy / "toy" / "nodes.py"  # new capture code does not invalidate data already captured
     f.write_text(f.read_text().replace("np.full((5, 3), seed", "np.full((6, 3), seed"))
     assert statuses(run_json(toy, "use")) == {"capture": "cached", "use": "cached"}

@@ -4,12 +4,12 @@ import pytest
 
 from stages.sim.contact import solve_contact
 from stages.sim.deform import calibrate, deform_sequence
-from stages.sim.indenters import height_map, make_indenter
+from stages.sim.indenters import SEEN, height_map, make_indenter
 from stages.sim.sensors import contact_height, material_of, surface_gap
 from stages.sim.trajectory import calibration_trajectory, collection_trajectory
 
 RATIOS = ("r6", "r8", "r10", "r12", "r14", "r16", "r18")
-TWINS = ("gelsight-A-I", "gelsight-A-II", "gelsight-C-I", "gelsight-C-II", "gelsight-D-I")
+GELS = tuple(f"gelsight-{r}" for r in RATIOS)
 
 
 def test_materials(params):
@@ -35,20 +35,21 @@ def test_sensor_geometry(profile, load_params):
         assert s["trajectory"] in ("sim_trajectory", "collection_trajectory")
     assert sensors["sim"]["pad_mm"] == [20.0, 20.0] and sensors["sim"]["thickness_mm"] == 4.0
     assert sensors["sim"]["material"] == "sim" and sensors["sim"]["trajectory"] == "sim_trajectory"
-    for twin in TWINS:                                     # one gel, one geometry: only markers differ
-        assert sensors[twin] == sensors[TWINS[0]]
-    assert sensors[TWINS[0]]["pad_mm"] == [25.0, 25.0] and sensors[TWINS[0]]["thickness_mm"] == 4.0
+    for gel, ratio in zip(GELS, RATIOS):                   # one geometry: only the elastomer differs
+        assert {**sensors[gel], "material": None} == {**sensors[GELS[0]], "material": None}
+        assert sensors[gel]["material"] == ratio
+    assert sensors[GELS[0]]["pad_mm"] == [25.0, 25.0] and sensors[GELS[0]]["thickness_mm"] == 4.0
     tactip, uskin = sensors["tactip"], sensors["uskin"]
     assert tactip["curvature_radius_mm"] == 41.5 and tactip["pad_mm"] == [40.0, 40.0]
     assert tactip["max_depth_mm"] <= 5.0 and tactip["depth_scale"] * 1.0 == tactip["max_depth_mm"]
     assert uskin["pad_mm"] == [24.6, 22.6] and uskin["thickness_mm"] == 5.0
-    e = {n: mats[sensors[n]["material"]]["E"] for n in ("tactip", "gelsight-A-I", "uskin")}
-    assert e["tactip"] < e["gelsight-A-I"] < e["uskin"]   # very soft .. stiffest
+    e = {n: mats[sensors[n]["material"]]["E"] for n in ("tactip", "gelsight-r10", "uskin")}
+    assert e["tactip"] < e["gelsight-r10"] < e["uskin"]   # very soft .. stiffest
 
 
 def test_softer_elastomer_less_force(params):
     """Same GelSight pad, same sphere, same depth: force falls from r6 to r18, normal and shear."""
-    spec = {**params["sensors"]["gelsight-A-I"], "grid": [33, 33], "spacing_mm": 0.78125}
+    spec = {**params["sensors"]["gelsight-r10"], "grid": [33, 33], "spacing_mm": 0.78125}
     height = height_map("sphere", shape=(33, 33), spacing=0.78125)
     forces = []
     for r in RATIOS:
@@ -90,10 +91,10 @@ def test_tactip_softest_at_max_normalised_depth(params, indenter_artifact):
     """Paper: at maximum normalised depth TacTip's force is 2x below GelSight's and 4x below
     uSkin's.  Tolerance: a factor 1.5 either way (measured here: 2.10 and 4.05)."""
     f = {s: _force_at_max_normalised_depth(params, indenter_artifact, s)
-         for s in ("gelsight-A-I", "tactip", "uskin")}
-    assert 2 / 1.5 < f["gelsight-A-I"] / f["tactip"] < 2 * 1.5
+         for s in ("gelsight-r10", "tactip", "uskin")}
+    assert 2 / 1.5 < f["gelsight-r10"] / f["tactip"] < 2 * 1.5
     assert 4 / 1.5 < f["uskin"] / f["tactip"] < 4 * 1.5
-    assert f["uskin"] > f["gelsight-A-I"] > f["tactip"]
+    assert f["uskin"] > f["gelsight-r10"] > f["tactip"]
 
 
 def test_gelsight_force_range(params, indenter_artifact, run_node):
@@ -103,11 +104,11 @@ def test_gelsight_force_range(params, indenter_artifact, run_node):
     1 mm, sheared 1 mm in 4 directions.  Tolerance: the extreme normal force within 25% of
     16 N, the extreme shear within a factor 1.5 of 6 N (measured: -15.8 N, 5.6 N)."""
     tr = collection_trajectory(n_points=1, n_directions=4, depth_step_mm=1.0, max_depth_mm=1.0,
-                               indenters=params["collection_trajectory"]["indenters"])
-    spec = params["sensors"]["gelsight-A-I"]
+                               indenters=SEEN)
+    spec = params["sensors"]["gelsight-r10"]
     chunks, _ = run_node(deform_sequence(
         indenters=indenter_artifact, sim_trajectory={}, collection_trajectory=tr,
-        sensor="gelsight-A-I", spec=spec, materials=params["materials"],
+        sensor="gelsight-r10", spec=spec, materials=params["materials"],
         contacts_per_indenter=0, frame_stride=1000))          # each movement's target only
     force = np.concatenate([c["force"] for c in chunks])
     assert len(chunks) == 12

@@ -19,10 +19,10 @@ def collection():
 
 @pytest.fixture(scope="module")
 def gelsight(ci_params, indenter_artifact, collection, run_node):
-    spec = ci_params["sensors"]["gelsight-A-I"]
+    spec = ci_params["sensors"]["gelsight-r10"]
     return spec, run_node(deform_sequence(
         indenters=indenter_artifact, sim_trajectory={}, collection_trajectory=collection,
-        sensor="gelsight-A-I", spec=spec, materials=ci_params["materials"],
+        sensor="gelsight-r10", spec=spec, materials=ci_params["materials"],
         contacts_per_indenter=0, frame_stride=9))
 
 
@@ -50,7 +50,7 @@ def test_schema(gelsight):
     assert np.all(final["surface_z"] == 0) and final["on_pad"].all()        # a flat pad
     assert final["grid_x"][w // 2] == 0.0 and np.diff(final["grid_x"])[0] == spec["spacing_mm"]
     assert bytes(final["figures"]["force_trace"][:8]) == PNG
-    assert final["attrs"]["sensor"] == "gelsight-A-I" and final["attrs"]["material"] == "r10"
+    assert final["attrs"]["sensor"] == "gelsight-r10" and final["attrs"]["material"] == "r10"
     assert final["attrs"]["frames"] == n
     assert list(final["indenters"]) == list(ALL_INDENTERS)
     np.testing.assert_array_equal(_cat(chunks, "position")[:, 2], -_cat(chunks, "depth"))
@@ -154,8 +154,8 @@ def test_select_frames():
 
 def test_calibrate_hysteresis(params, indenter_artifact):
     tr = calibration_trajectory(n_steps=6, repetitions=3)
-    out = calibrate(indenters=indenter_artifact, trajectory=tr, sensor="gelsight-A-I",
-                    spec=params["sensors"]["gelsight-A-I"], materials=params["materials"])
+    out = calibrate(indenters=indenter_artifact, trajectory=tr, sensor="gelsight-r10",
+                    spec=params["sensors"]["gelsight-r10"], materials=params["materials"])
     n = tr["depth"].size
     assert out["force"].dtype == np.float32 and out["force"].shape == (n, 3)
     assert out["loading"].dtype == bool and out["repetition"].tolist() == tr["contact_id"].tolist()

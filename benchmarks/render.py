@@ -1,0 +1,191 @@
+"""Speed and memory of the Mitsuba marker renderer (stages.markers.render).
+
+Run: python benchmarks/render.py [--quick]   (about 2-3 minutes on a 2-core CPU; --quick ~40 s)
+
+Input: a synthetic contact sequence on the sim pad's solver grid (65 x 65, 0.3125 mm): a
+Hertz-like press (dip with radially outward ux, uy) that deepens to 1.5 mm and then drags
++x, cycling over 24 distinct fields; pattern Array2 (look none) and GelSight C-II (look
+gelsight, 25 mm pad).  No engine needed.
+
+Table 1, images/s per backend x look x size:
+  node   render_sequence drained after its first chunk (chunks of 8 here), i.e. once the scene
+         is built (vertex resampling, ray tracing, texture lookups, shading, chunking, labels);
+  bare   the same Mitsuba scene in a bare loop: set vertex_positions, params.update(),
+         mi.render, copy to numpy - vertex buffers prepared before timing;
+  ratio  node / bare (the cost of everything that is not Mitsuba);
+  cpu ms CPU time per frame (all threads): on a busy machine a steadier measure than img/s.
+Table 2: peak Python-heap memory (tracemalloc: numpy buffers included, Mitsuba's own
+allocations not) while draining the node over 100 and 1000 frames; it must not grow.
+"""
+import argparse
+import os
+import sys
+import time
+import tracemalloc
+from collections.abc import Mapping
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+import numpy as np                                                              # noqa: E402
+
+import stages.markers.render as render                                          # noqa: E402
+from stages.markers.mitsuba_backend import llvm_usable, mitsuba, thread_count   # noqa: E402
+from stages.markers.patterns import gelsight_pattern, pattern                   # noqa: E402
+from stages.markers.render import LABEL_KEYS, Renderer, render_sequence         # noqa: E402
+
+GRID = 65
+DISTINCT = 24
+
+
+def fields(pad_mm: float) -> np.ndarray:
+    """DISTINCT displacement fields (press to 1.5 mm, then a 1 mm drag along +x)."""
+    g = (np.arange(GRID) - (GRID - 1) / 2) * pad_mm / (GRID - 1)
+    x, y = np.meshgrid(g, g)
+    out = []
+    for k in range(DISTINCT):
+        depth = 1.5 * min(1.0, (k + 1) / (DISTINCT // 2))
+        shift = max(0, k - DISTINCT // 2) / (DISTINCT // 2)
+        cx = shift
+        r2 = (x - cx) ** 2 + y ** 2
+        bump = np.exp(-r2 / 18.0)
+        drag = np.exp(-r2 / 40.0)
+        out.append(np.stack([0.25 * depth * (x - cx) / 3 * bump + shift * drag,
+                             0.25 * depth * y / 3 * bump, -depth * bump], -1))
+    return np.asarray(out, np.float32)
+
+
+class LazyFrames:
+    """Frames made on slicing, like an artifact's LazyArray: the input holds no sequence."""
+
+    def __init__(self, base: np.ndarray, n: int):
+        self.base, self.n = base, n
+
+    def __len__(self):
+        return self.n
+
+    def __getitem__(self, item):
+        rows = np.arange(self.n)[item]
+        return self.base[rows % len(self.base)]
+
+
+class SyntheticDeform(Mapping):
+    """A deform artifact stand-in with n frames."""
+
+    def __init__(self, n: int, pad_mm: float):
+        g = (np.arange(GRID) - (GRID - 1) / 2) * pad_mm / (GRID - 1)
+        depth = np.resize(np.linspace(0.1, 1.5, DISTINCT), n)
+        self.data = {"grid_x": g, "grid_y": g, "surface_z": np.zeros((GRID, GRID)),
+                     "on_pad": np.ones((GRID, GRID), bool),
+                     "displacement": LazyFrames(fields(pad_mm), n),
+                     "depth": depth, "normalised_depth": (depth / 1.5).astype(np.float32)}
+        self.data.update({k: LazyFrames(np.zeros((DISTINCT, 3), np.float32), n)
+                          for k in LABEL_KEYS if k not in self.data})
+
+    def __getitem__(self, k):
+        return self.data[k]
+
+    def __iter__(self):
+        return iter(self.data)
+
+    def __len__(self):
+        return len(self.data)
+
+
+SKINS = {"none": ("Array2", pattern("Array2"), 20.0),
+         "gelsight": ("gelsight-C-II", gelsight_pattern("C-II"), 25.0)}
+
+
+def patterns_input(name, ms):
+    return {f"markers/{name}/{k}": v for k, v in (("centers", ms.centers), ("axes", ms.axes),
+                                                  ("angles", ms.angles),
+                                                  ("pad_size_mm", np.asarray(ms.pad_size_mm)))}
+
+
+def drain(gen):
+    while True:
+        try:
+            next(gen)
+        except StopIteration as stop:
+            return stop.value
+
+
+def node_rate(look, size, backend, n, spp):
+    name, ms, pad = SKINS[look]
+    spec = {"sensor": "synthetic", "pattern": name, "look": look, "noise": 2.0}
+    kwargs = dict(patterns=patterns_input(name, ms), skin=name, spec=spec, size=size, spp=spp,
+                  backend=backend)
+    drain(render_sequence(deform=SyntheticDeform(4, pad), **kwargs))       # compile kernels
+    gen = render_sequence(deform=SyntheticDeform(n, pad), **kwargs)
+    first = len(next(gen)["truth"])                 # the scene is built: time from here
+    t, cpu = time.perf_counter(), time.process_time()
+    drain(gen)
+    frames = n - first
+    return frames / (time.perf_counter() - t), 1e3 * (time.process_time() - cpu) / frames
+
+
+def bare_rate(look, size, backend, n, spp):
+    _, ms, pad = SKINS[look]
+    d = SyntheticDeform(1, pad)
+    r = Renderer(d["grid_x"], d["grid_y"], d["surface_z"], d["on_pad"], ms, look=look,
+                 size=size, spp=spp, backend=backend)
+    buffers = [r.vertex_buffer(r.mesh.positions(f)) for f in fields(pad)]
+    mi = mitsuba(r.backend)
+
+    def frame(k):
+        r.params["pad.vertex_positions"] = buffers[k % len(buffers)]
+        r.params.update()
+        return np.array(mi.render(r.scene, spp=1))
+
+    with thread_count(render.THREADS):                # as the node runs
+        frame(0)
+        t, cpu = time.perf_counter(), time.process_time()
+        for k in range(n):
+            frame(k)
+        return n / (time.perf_counter() - t), 1e3 * (time.process_time() - cpu) / n
+
+
+def peak_mb(n, size, backend):
+    name, ms, pad = SKINS["none"]
+    spec = {"sensor": "synthetic", "pattern": name, "look": "none"}
+    deform = SyntheticDeform(n, pad)
+    tracemalloc.start()
+    drain(render_sequence(deform=deform, patterns=patterns_input(name, ms), skin=name, spec=spec,
+                          size=size, spp=1, backend=backend))
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    return peak / 2 ** 20
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="fewer frames and sizes")
+    args = ap.parse_args()
+    backends = ["llvm", "scalar"] if llvm_usable() else ["scalar"]
+    sizes = [(128, 128), (256, 256)] if args.quick else [(128, 128), (256, 256), (480, 640)]
+    budget = 0.5 if args.quick else 1.5                    # seconds of frames per measurement
+    print(f"backends: {', '.join(backends)}" + ("" if llvm_usable() else "  (llvm unusable here)")
+          + f"; Dr.Jit threads while rendering: {render.THREADS}; load average "
+          + " ".join(f"{v:.1f}" for v in os.getloadavg()))
+    chunk, render.CHUNK = render.CHUNK, 8                 # time the node from its 9th frame
+    print(f"{'backend':8s} {'look':9s} {'size':>8s} {'spp':>3s} {'frames':>6s} {'node img/s':>10s} "
+          f"{'bare img/s':>10s} {'ratio':>6s} {'node cpu ms':>11s} {'bare cpu ms':>11s}")
+    for backend in backends:
+        for look in ("none", "gelsight"):
+            for size in sizes:
+                spp = 1
+                probe, _ = bare_rate(look, size, backend, 4, spp)
+                n = int(np.clip(budget * probe, 24, 400))
+                bare, bare_cpu = bare_rate(look, size, backend, n, spp)
+                node, node_cpu = node_rate(look, size, backend, n, spp)
+                print(f"{backend:8s} {look:9s} {size[0]:>3d}x{size[1]:<4d} {spp:>3d} {n:>6d} "
+                      f"{node:>10.1f} {bare:>10.1f} {node / bare:>6.2f} {node_cpu:>11.2f} "
+                      f"{bare_cpu:>11.2f}", flush=True)
+    render.CHUNK = chunk
+    counts = (50, 200) if args.quick else (100, 1000)
+    print(f"\npeak memory of render_sequence (look none, 128x128, {backends[0]}), tracemalloc:")
+    for n in counts:
+        print(f"  {n:5d} frames: {peak_mb(n, (128, 128), backends[0]):7.2f} MiB", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,202 @@
+"""Node `control`: the paper's robot tasks (Fig. 7) in the gripper twin with a force model.
+
+For each grasp object: close and hold the object's target force (0.6 / 0.8 / 1.2 N by
+fragility) with the P controller on the model's force estimates; for each slip object: grasp,
+lift, then an external pull ramps up while the slip avoider watches the estimated shear.  The
+same slip episode is also run without avoidance (oracle grasp, no detector) to show what the
+pull alone does (`slip_mm_passive`).
+
+Metrics (episodes.py defines them): control/grasp/<object>/{force_error_N, crushed, success,
+pred_error_N}; control/slip/<object>/{detected_s, slip_mm, slip_mm_passive, false_alarms,
+detected, tightenings, force_error_N, crushed, success}; control/mean/{grasp,slip}/<metric>
+over the objects.
+Grasp success needs no crushing and a steady-state error below `tolerance_N`, default 0.25 N:
+a fragile item (0.6 N) is then held below 0.85 N and a robust one (1.2 N) above 0.95 N, so the
+grasp stays in its fragility class's band (the paper's point in choosing the targets), and the
+band is wider than what 10 Hz P control on a true force leaves (under 0.02 N with the oracle),
+so a failure is the force model's.
+"""
+from __future__ import annotations
+
+from typing import Callable, Mapping
+
+import numpy as np
+
+from stages.control.controller import OraclePredictor
+from stages.control.episodes import (DEFAULT_CONTROLLER, DEFAULT_PULL, DEFAULT_TWIN, grasp_metrics,
+                                     merged_settings, run_episode, slip_metrics)
+from stages.control.objects import GraspObject, grasp_object
+from stages.figures import contact_sheet, figure_png, png
+
+_ARRAYS = ("time", "width_m", "force_true", "force_pred", "normal_N", "slip_mm", "load_N")
+
+
+def oracle_factory(*, finger: str = "left", noise_N: float = 0.0, lag_frames: int = 0,
+                   seed: int = 0) -> Callable:
+    """make_predictor for run_study: the twin's own true force on one finger."""
+    return lambda twin: OraclePredictor(lambda: twin.true_force(finger), noise_N=noise_N,
+                                        lag_frames=lag_frames, seed=seed)
+
+
+def control_study(*, model, objects: Mapping, grasp: list, slip: list, sensor: Mapping,
+                  material: Mapping, size, duration_s: float, pull: Mapping, seed: int = 0,
+                  twin: Mapping | None = None, controller: Mapping | None = None,
+                  tolerance_N: float = 0.25) -> dict:
+    """Node `control`.  model: an artifact holding force-model weights (loaded with
+    stages.force.model.load_predictor, prefix "genforce_comp"); None runs the oracle (the
+    twin's true force), the ceiling any model is measured against.  seed: the oracle's noise
+    stream (the model's predictions are deterministic).  See run_study."""
+    kw = dict(objects=objects, grasp=grasp, slip=slip, sensor=sensor, material=material, size=size,
+              duration_s=duration_s, pull=pull, seed=seed, twin=twin, controller=controller,
+              tolerance_N=tolerance_N)
+    if model is None:
+        finger = merged_settings(DEFAULT_TWIN, twin, "twin")["finger"]
+        out = run_study(oracle_factory(finger=finger, seed=seed), **kw)
+        out["attrs"]["predictor"] = "oracle"
+        return out
+    import torch
+    from stages.force.model import load_predictor
+    predictor = load_predictor(model, prefix="genforce_comp")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)             # one frame at a time: extra threads only contend
+    try:
+        out = run_study(lambda gripper: predictor, **kw)
+    finally:
+        torch.set_num_threads(threads)
+    out["attrs"]["predictor"] = "genforce_comp"
+    return out
+
+
+def run_study(make_predictor: Callable, *, objects: Mapping, grasp: list, slip: list,
+              sensor: Mapping, material: Mapping, size, duration_s: float, pull: Mapping,
+              seed: int = 0, twin: Mapping | None = None, controller: Mapping | None = None,
+              tolerance_N: float = 0.25) -> dict:
+    """All episodes with predictors from make_predictor(gripper twin) -> predictor.
+
+    objects: catalogue name -> entry (objects.py); grasp / slip: names to run; sensor /
+    material: the sensor twin's catalogue entry and elastomer; size: marker image (H, W);
+    duration_s: the grasp phase; pull: slip-phase settings (episodes.DEFAULT_PULL keys);
+    twin / controller: overrides of episodes.DEFAULT_TWIN / DEFAULT_CONTROLLER.
+    Returns grasp/<object>/... and slip/<object>/... per-frame arrays, figures, metrics, attrs.
+    """
+    from tqdm import tqdm
+
+    unknown = [n for n in list(grasp) + list(slip) if n not in objects]
+    if unknown:
+        raise KeyError(f"control objects {unknown} are not in the catalogue ({', '.join(objects)})")
+    tw = merged_settings(DEFAULT_TWIN, twin, "twin")
+    ctl = merged_settings(DEFAULT_CONTROLLER, controller, "controller")
+    pl = merged_settings(DEFAULT_PULL, pull, "pull")
+    size = tuple(int(v) for v in size)
+    common = {"sensor": sensor, "material": material, "size": size, "grasp_s": float(duration_s),
+              "twin": tw, "controller": ctl}
+    tables, out, metrics, figures, marks = {}, {"grasp": {}, "slip": {}}, {}, {}, {}
+    steady_images = []
+    runs = [("grasp", n) for n in grasp] + [("slip", n) for n in slip]
+    for kind, name in tqdm(runs, desc="control", unit="episode", disable=None, leave=False):
+        obj = grasp_object(name, objects[name])
+        ep = run_episode(obj, make_predictor, pull=pl if kind == "slip" else None,
+                         table=tables.get(name), **common)
+        tables[name] = ep["table"]
+        prefix = f"control/{kind}/{name}"
+        if kind == "grasp":
+            found = grasp_metrics(ep, tolerance_N)
+            figures[f"grasp_{name}"] = _trace_png(ep, f"grasp {name}: target {obj.target_N} N")
+            diff = 128 + (ep["image"].astype(np.int16) - ep["reference"]) // 2
+            steady_images += [ep["image"], diff.astype(np.uint8)]
+        else:
+            found = slip_metrics(ep, float(ctl["window_s"]), tolerance_N)
+            passive = run_episode(obj, oracle_factory(finger=tw["finger"], seed=seed), pull=pl,
+                                  table=tables[name],
+                                  **{**common, "controller": {**ctl, "threshold_N": np.inf}})
+            found["slip_mm_passive"] = slip_metrics(passive, float(ctl["window_s"]))["slip_mm"]
+            figures[f"slip_{name}"] = _trace_png(ep, f"slip {name}: pull {pl['rate_N_s']} N/s "
+                                                     f"to {pl['max_N']} N", passive=passive)
+        metrics.update({f"{prefix}/{k}": float(v) for k, v in found.items()})
+        out[kind][name] = _arrays(ep)
+        marks[f"{kind}/{name}"] = {k: float(v) for k, v in ep["marks"].items()}
+        if ep.get("onset") is not None:
+            marks[f"{kind}/{name}"]["onset"] = float(ep["onset"])
+    metrics.update(_means(metrics, grasp, slip))
+    if steady_images:
+        # each grasp object's last marker image and its change from the reference (grey 0)
+        figures["images"] = png(contact_sheet(steady_images, cols=min(len(steady_images), 6)))
+    out = {k: v for k, v in out.items() if v}
+    out["figures"] = figures
+    out["metrics"] = metrics
+    out["attrs"] = {"units": "s, m (width), N (force: left pad frame, Fz < 0 pressing), mm (slip)",
+                    "targets_N": {n: grasp_object(n, objects[n]).target_N for n in dict.fromkeys(
+                        list(grasp) + list(slip))},
+                    "tolerance_N": float(tolerance_N), "image_size": list(size),
+                    "twin": {k: (list(v) if isinstance(v, (list, tuple)) else v) for k, v in tw.items()},
+                    "controller": {k: float(v) for k, v in ctl.items()},
+                    "pull": {k: float(v) for k, v in pl.items()}, "marks_s": marks}
+    return out
+
+
+def _arrays(ep: Mapping) -> dict:
+    arrays = {k: np.asarray(ep[k], np.float32 if k.startswith("force") else np.float64)
+              for k in _ARRAYS}
+    arrays["events"] = {k: np.asarray(v, np.float64) for k, v in ep["events"].items()}
+    return arrays
+
+
+def _means(metrics: Mapping, grasp, slip) -> dict:
+    out = {}
+    for kind, names, keys in (("grasp", grasp, ("force_error_N", "success", "crushed", "pred_error_N")),
+                              ("slip", slip, ("detected_s", "slip_mm", "slip_mm_passive", "success"))):
+        for key in keys:
+            values = [metrics[f"control/{kind}/{n}/{key}"] for n in names
+                      if f"control/{kind}/{n}/{key}" in metrics]
+            if values:
+                out[f"control/mean/{kind}/{key}"] = float(np.mean(values))
+    return out
+
+
+def _trace_png(ep: Mapping, title: str, passive: Mapping | None = None) -> np.ndarray:
+    """Force and width traces: true vs predicted normal force with the target; for slip runs
+    also the shear along the pull and the slip (with the no-avoidance run dashed)."""
+    from matplotlib.figure import Figure
+
+    obj: GraspObject = ep["object"]
+    t, marks = ep["time"], ep["marks"]
+    rows = 3 if passive is not None else 2
+    fig = Figure(figsize=(7, 2.2 * rows))
+    axes = fig.subplots(rows, 1, sharex=True)
+    ax = axes[0]
+    ax.plot(t, -ep["force_true"][:, 2], color="k", lw=1.2, label="true")
+    ax.plot(t, -ep["force_pred"][:, 2], color="C0", lw=0.9, label="predicted")
+    ax.axhline(obj.target_N, color="C2", ls="--", lw=0.8, label="target")
+    if ep["max_normal_N"] > obj.crush_N:
+        ax.axhline(obj.crush_N, color="C3", ls=":", lw=0.8, label="crush")
+    ax.set(ylabel="normal force (N)", title=title)
+    ax.legend(loc="lower right", fontsize=7, ncol=4)
+    if passive is not None:
+        ax = axes[1]
+        for k, (label, colour) in enumerate((("Fx", "C1"), ("Fy", "C4"))):
+            ax.plot(t, ep["force_true"][:, k], color=colour, lw=1.2, label=f"{label} true")
+            ax.plot(t, ep["force_pred"][:, k], color=colour, lw=0.8, ls="--", label=f"{label} pred")
+        ax.set(ylabel="shear (N)")
+        ax.legend(loc="upper left", fontsize=7, ncol=4)
+    ax = axes[-1]
+    ax.plot(t, ep["width_m"] * 1e3, color="C7", lw=1.0)
+    ax.set(ylabel="width (mm)", xlabel="time (s)")
+    if passive is not None:
+        slip = ax.twinx()
+        slip.plot(t, np.hypot(*ep["slip_mm"].T), color="C3", lw=1.2, label="slip")
+        slip.plot(passive["time"], np.hypot(*passive["slip_mm"].T), color="C3", lw=0.8, ls=":",
+                  label="slip, no avoidance")
+        slip.set_ylabel("slip (mm)")
+        slip.legend(loc="center right", fontsize=7)
+    for a in axes:
+        for time in ep["events"]["contact"]:
+            a.axvline(time, color="C2", lw=0.6, ls=":")
+        for time in ep["events"]["detected"]:
+            a.axvline(time, color="C3", lw=0.8)
+        for key in ("monitor", "pull"):
+            if key in marks:
+                a.axvline(marks[key], color="0.5", lw=0.6, ls="--")
+        if ep.get("onset") is not None:
+            a.axvline(ep["onset"], color="C3", lw=0.6, ls="--")
+    fig.tight_layout()
+    return figure_png(fig)

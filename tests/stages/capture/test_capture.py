@@ -1,0 +1,194 @@
+"""Node `capture` end to end against the loopback emulators: physics, staging, faults, resume."""
+import os
+
+import numpy as np
+import pytest
+
+from capture_util import LABELS, drain
+from stages.capture import DeviceError
+
+
+@pytest.fixture(scope="module")
+def baseline(run_capture, tmp_path_factory):
+    """An uninterrupted capture with robot + NetF/T + camera."""
+    return run_capture(tmp_path_factory.mktemp("baseline"))
+
+
+@pytest.fixture(scope="module")
+def twin(ci, meshes, trajectory):
+    """The deform node's answer for the same frames, sensor and meshes."""
+    from stages.sim.deform import deform_sequence
+    chunks, final = drain(deform_sequence(
+        indenters=meshes, sim_trajectory={}, collection_trajectory=trajectory, sensor="gelsight-r10",
+        spec=ci["sensors"]["gelsight-r10"], materials=ci["materials"]))
+    out = {k: np.concatenate([c[k] for c in chunks]) for k in ("force", "position", "displacement", "frame")}
+    return out, final
+
+
+def _same(a, b, keys=LABELS + ("raw", "camera_valid")):
+    for k in keys:
+        if k in a or k in b:
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+def test_forces_positions_and_images_follow_the_twin(baseline, twin):
+    data, final = baseline
+    ref, deform = twin
+    n = len(ref["force"])
+    assert n == 48 and data["force"].shape == (n, 3) and data["force"].dtype == np.float32
+    np.testing.assert_array_equal(data["frame"], ref["frame"])
+    # NetF/T counts (1e6 per N) after the tare of a 0.12/-0.08/0.35 N bias: micro-newton agreement
+    np.testing.assert_allclose(data["force"], ref["force"], atol=2e-6)
+    assert data["force"][:, 2].min() < -0.5 and np.abs(data["force"][:, 0]).max() > 0.2
+    np.testing.assert_allclose(data["position"], ref["position"], atol=1e-9)
+    np.testing.assert_allclose(data["depth"], -data["position"][:, 2])
+    # every sensor sample is taken after the robot stopped, and the labels follow the trajectory
+    ts = data["timestamps"]
+    assert np.all(ts["netft"] >= ts["robot"]) and np.all(ts["camera"] >= ts["robot"])
+    assert data["raw"].shape == (n, 60, 80, 3) and data["camera_valid"].all()
+    # frames are the pattern moved by the twin's displacement field, downsized like the camera's
+    import cv2
+    from stages.capture.twin import marker_image, marker_layout
+    markers = marker_layout("gelsight-A-II", 7)
+    for k in (5, 30):
+        full = marker_image(markers, ref["displacement"][k], deform["grid_x"], deform["grid_y"])
+        small = cv2.resize(full, (80, 60), interpolation=cv2.INTER_AREA)
+        assert np.abs(small.astype(int) - data["raw"][k]).max() <= 1
+    moved = np.abs(data["raw"].astype(int) - final["reference_raw"][None]).mean(axis=(1, 2, 3))
+    assert moved[np.argmax(-data["force"][:, 2])] > 0.3 and moved[-1] == 0.0   # pressed vs lifted
+    assert final["attrs"]["netft_lost"] == 0 and final["attrs"]["sessions"] == 1
+    assert final["attrs"]["frames"] == n and final["attrs"]["contacts"] == 2
+
+
+def test_staging_file_is_removed_after_sealing(run_capture, tmp_path):
+    run_capture(tmp_path, devices=("robot", "netft"))
+    assert os.listdir(tmp_path) == []
+
+
+def _interrupted(run_capture, staging, match, **faults):
+    with pytest.raises(DeviceError, match=match) as err:
+        run_capture(staging, **faults)
+    (path,) = staging.glob("capture-*.h5")
+    import h5py
+    with h5py.File(path, "r") as f:
+        staged = {k: f[k][()] for k in ("force", "frame", "raw") if k in f}
+        rows = int(f.attrs["committed_rows"])
+    return str(err.value), staged, rows
+
+
+def test_disconnect_keeps_complete_contacts_and_resumes(run_capture, baseline, tmp_path):
+    data, _ = baseline
+    # 8 tare + 24 frames for the first contact, 8 tare + 5 frames of the second, then silence
+    msg, staged, rows = _interrupted(run_capture, tmp_path, r"^netft 127\.0\.0\.1:\d+: no reply for 0\.\d s after "
+                                     r"45 samples \(trajectory frame 29, contact 1\)$",
+                                     netft={"faults": {"disconnect_after": 45}})
+    assert rows == 24 and len(staged["force"]) == 24
+    np.testing.assert_array_equal(staged["force"], data["force"][:24])
+    resumed, final = run_capture(tmp_path, netft={"timeout_s": 1.0})   # patience may change
+    _same(resumed, data)
+    assert final["attrs"]["sessions"] == 2 and os.listdir(tmp_path) == []
+
+
+def test_resume_refuses_other_parameters(run_capture, tmp_path):
+    _interrupted(run_capture, tmp_path, "netft", netft={"faults": {"disconnect_after": 45}})
+    with pytest.raises(ValueError, match=r"capture-gelsight-r10\.h5 holds a capture with other parameters "
+                                         r"\(differs in camera\.out_size\)"):
+        run_capture(tmp_path, camera={"out_size": [30, 40]})
+
+
+def test_lost_udp_packets_are_counted_or_fatal(run_capture, baseline, tmp_path):
+    data, _ = baseline
+    got, final = run_capture(tmp_path / "a", netft={"faults": {"drop_every": 12}, "max_lost_fraction": 0.1})
+    lost, received = final["attrs"]["netft_lost"], final["attrs"]["netft_received"]
+    assert lost == (received + lost) // 12 and lost >= 5
+    _same(got, data)                              # a lost reply is asked for again: same data
+    with pytest.raises(DeviceError, match=r"^netft 127\.0\.0\.1:\d+: 10 of 21 records lost \(47\.6%, limit 5%\) "
+                                          r"\(trajectory frame 2, contact 0\)$"):
+        run_capture(tmp_path / "b", netft={"faults": {"drop_every": 2}})
+
+
+def test_dropped_camera_frames_repeat_the_last_frame(run_capture, baseline, tmp_path):
+    data, _ = baseline
+    # every 5 reads the last 3 fail: with 2 retries every third sample gets no frame at all
+    cam = {"retries": 2, "max_invalid_fraction": 0.5, "faults": {"drop_every": 5, "drop_burst": 3}}
+    got, final = run_capture(tmp_path / "a", camera=cam)
+    valid = got["camera_valid"]
+    bad = np.flatnonzero(~valid)
+    assert 10 <= bad.size <= 20 and final["attrs"]["camera_invalid"] == bad.size
+    assert final["attrs"]["camera_dropped"] >= 3 * bad.size
+    for k in bad:                                 # repeats the frame before; valid rows are fresh
+        np.testing.assert_array_equal(got["raw"][k], got["raw"][k - 1])
+    np.testing.assert_array_equal(got["raw"][valid], data["raw"][valid])
+    np.testing.assert_array_equal(got["force"], data["force"])
+    cam["max_invalid_fraction"] = 0.05
+    with pytest.raises(DeviceError, match=r"^camera 0: 7 of 21 samples without a frame \(33%, limit 5%\) "
+                                         r"\(trajectory frame 19, contact 0\)$"):
+        run_capture(tmp_path / "b", camera=cam)
+
+
+def test_camera_that_stops_delivering_is_an_error(run_capture, tmp_path):
+    with pytest.raises(DeviceError, match=r"^camera 0: no frame for 10 reads after 33 samples "
+                                         r"\(trajectory frame 32, contact 1\)$"):
+        run_capture(tmp_path, camera={"faults": {"disconnect_after": 30}})
+
+
+def test_protective_stop_then_resume(run_capture, baseline, tmp_path):
+    data, _ = baseline
+    # moves: clearance, approach, 24 frames, lift (27); second contact (another indenter):
+    # clearance, approach, then its 9th frame is move 38
+    msg, staged, rows = _interrupted(run_capture, tmp_path, r"^robot twin: protective stop at move 38 "
+                                                            r"\(trajectory frame 32, contact 1\)$",
+                                     robot={"faults": {"protective_stop_at": 38}})
+    assert rows == 24
+    resumed, final = run_capture(tmp_path)
+    _same(resumed, data)
+    assert final["attrs"]["sessions"] == 2
+
+
+def test_operator_tool_changes_stop_and_resume(run_capture, baseline, tmp_path):
+    data, _ = baseline
+    session = {"tool_change": "operator"}
+    with pytest.raises(DeviceError, match=r"^robot twin: mount indenter 'prism' \(replacing 'sphere'\), then run "
+                                          r"the capture again to continue$"):
+        run_capture(tmp_path, session=session)
+    resumed, final = run_capture(tmp_path, session=session)
+    _same(resumed, data)
+    assert final["attrs"]["sessions"] == 2
+
+
+def test_serial_ft_xela_and_slcan_agree_with_the_twin(run_capture, tmp_path, ci, meshes, trajectory):
+    from stages.markers.uskin import taxel_signals
+    from stages.sim.deform import deform_sequence
+    a, fa = run_capture(tmp_path / "a", devices=("robot", "serial_ft", "xela"), sensor="uskin",
+                        xela={"emulator": {"hex": True}})
+    b, fb = run_capture(tmp_path / "b", devices=("robot", "netft", "slcan"), sensor="uskin")
+    chunks, final = drain(deform_sequence(indenters=meshes, sim_trajectory={}, collection_trajectory=trajectory,
+                                          sensor="uskin", spec=ci["sensors"]["uskin"], materials=ci["materials"]))
+    force = np.concatenate([c["force"] for c in chunks])
+    disp = np.concatenate([c["displacement"] for c in chunks])
+    np.testing.assert_allclose(a["force"], force, atol=2e-6)      # 6 decimals on the serial line
+    np.testing.assert_allclose(b["force"], force, atol=2e-6)
+    signals = taxel_signals(disp, final["grid_x"], final["grid_y"], pad_mm=ci["sensors"]["uskin"]["pad_mm"],
+                            noise=0.0)
+    np.testing.assert_array_equal(a["signals"], signals)
+    np.testing.assert_array_equal(b["signals"], signals)
+    assert a["signals"][:, :, 2].max() > 32768 + 200                 # pressing raises z
+    np.testing.assert_array_equal(fa["reference_signals"], np.full((16, 3), 32768))
+    assert fa["attrs"]["xela_lost"] == 0 and fb["attrs"]["slcan_lost"] == 0
+
+
+def test_slcan_disconnect_names_the_port(run_capture, tmp_path):
+    with pytest.raises(DeviceError, match=r"^slcan /dev/pts/\d+: disconnected after 3 samples"):
+        run_capture(tmp_path, devices=("robot", "slcan"), sensor="uskin", slcan={"faults": {"disconnect_after": 3}})
+
+
+def test_bad_requests_fail_before_any_device_starts(run_capture, tmp_path):
+    with pytest.raises(ValueError, match="devices must include robot"):
+        run_capture(tmp_path, devices=("netft",))
+    with pytest.raises(ValueError, match="choose one of netft / serial_ft"):
+        run_capture(tmp_path, devices=("robot", "netft", "serial_ft"))
+    with pytest.raises(ValueError, match=r"netft: unknown parameter\(s\) hostname"):
+        run_capture(tmp_path, netft={"hostname": "x"})
+    with pytest.raises(ValueError, match=r"netft: unknown fault\(s\) explode"):
+        run_capture(tmp_path, netft={"faults": {"explode": 1}})
+    assert os.listdir(tmp_path) == []

@@ -1,0 +1,294 @@
+"""Gripper twin, grasp controller and slip avoider, with an oracle force predictor."""
+import sys
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from stages.control.controller import GraspController, OraclePredictor, SlipAvoider
+from stages.control.episodes import grasp_metrics, run_episode, slip_metrics
+from stages.control.gripper import GripperTwin
+from stages.control.nodes import control_study, oracle_factory, run_study
+from stages.control.objects import DEFAULT_OBJECTS, grasp_object, profile_height
+from stages.markers.patterns import gelsight_pattern, rasterize
+from stages.sim.contact import solve_contact
+
+PNG = b"\x89PNG\r\n\x1a\n"
+# the GelSight twin's gel (params.yaml sensors.gelsight-r10 / materials.r10), pinned here
+SENSOR = {"pad_mm": [25.0, 25.0], "thickness_mm": 4.0, "curvature_radius_mm": 0.0, "material": "r10",
+          "grid": [65, 65], "spacing_mm": 0.390625, "max_depth_mm": 1.4}
+MATERIAL = {"E": 5.2e5, "nu": 0.45, "mu": 0.55, "hysteresis": 0.12}
+TWIN = {"grid": [33, 33]}
+SIZE = (96, 96)
+
+
+def obj(name):
+    return grasp_object(name, DEFAULT_OBJECTS[name])
+
+
+def oracle(**kw):
+    return lambda twin: OraclePredictor(lambda: twin.true_force("left"), **kw)
+
+
+def episode(name, make=None, **kw):
+    return run_episode(obj(name), make or oracle(), sensor=SENSOR, material=MATERIAL, size=SIZE,
+                       twin={**TWIN, **kw.pop("twin", {})}, **kw)
+
+
+class FakeGripper:
+    def __init__(self, width):
+        self.w, self.moves, self.stops = width, [], 0
+
+    def width(self):
+        return self.w
+
+    def move(self, width_m, speed_m_s):
+        self.moves.append((width_m, speed_m_s))
+
+    def stop(self):
+        self.stops += 1
+
+
+# -- controllers on their own -----------------------------------------------------------------
+
+def test_grasp_controller_closes_then_p_controls_at_10_hz():
+    c = GraspController(0.8)
+    g = FakeGripper(0.030)
+    c.start(0.0, g)
+    assert g.moves == [(0.0, 0.005)]                          # close at the paper's 5 mm/s
+    assert c.update(0.0, (0, 0, -0.05), g) is None            # below the contact threshold
+    assert c.update(0.05, (0, 0, -0.5), g) is None            # between two 10 Hz ticks
+    assert c.update(0.1, (0, 0, -0.5), g) == "contact"
+    assert g.moves[-1] == pytest.approx((0.030 - 0.0004 * (0.8 - 0.5), 0.005))
+    c.update(0.2, (0, 0, -1.3), g)                            # over target: opens
+    assert g.moves[-1][0] == pytest.approx(0.030 + 0.0004 * 0.5)
+    c.hold(g)
+    assert g.stops == 1 and c.update(0.3, (0, 0, 0.0), g) is None
+    with pytest.raises(ValueError, match="contact threshold"):
+        GraspController(0.05)
+
+
+def test_slip_avoider_threshold_over_three_samples():
+    a = SlipAvoider()
+    g = FakeGripper(0.020)
+    a.start(0.0)
+    fy = [0.5, 0.55, 0.6, 0.79, 0.89]                        # 3-sample variations 0.1, 0.24, 0.29
+    hits = [a.update(k * 0.05, (0.0, f, -1.0), g) for k, f in enumerate(fy)]
+    assert not any(hits) and g.moves == []
+    assert a.update(0.25, (0.0, 1.10, -1.0), g)               # 1.10 - 0.79 = 0.31 > 0.3
+    assert g.moves == [(pytest.approx(0.019), 0.015)]         # tighten 1 mm at 15 mm/s
+    assert a.detections == [0.25]
+    # busy while tightening (1 mm / 15 mm/s), then three fresh samples are needed again
+    assert not a.update(0.30, (0.0, 2.0, -1.0), g)
+    assert not a.update(0.35, (0.0, 0.0, -1.0), g) and not a.update(0.40, (0.0, 0.0, -1.0), g)
+    assert a.update(0.45, (-0.4, 0.0, -1.0), g)               # Fx counts as well
+    assert len(a.history) == 0
+
+
+def test_oracle_noise_lag_and_gain():
+    values = iter([np.array([0.0, 0.0, -float(k)]) for k in range(10)])
+    p = OraclePredictor(lambda: next(values), lag_frames=2, gain=0.5)
+    out = [p.step(None)[2] for _ in range(5)]
+    assert out == [0.0, 0.0, 0.0, -0.5, -1.0]
+    noisy = OraclePredictor(lambda: np.zeros(3), noise_N=0.1, seed=3)
+    first = np.array([noisy.step(None) for _ in range(400)])
+    noisy.reset()
+    assert np.array_equal(noisy.step(None), first[0])         # reset replays the noise
+    assert first.std() == pytest.approx(0.1, rel=0.1)
+
+
+# -- the twin -----------------------------------------------------------------------------------
+
+def test_twin_steady_force_matches_the_contact_solver():
+    """Plum, closure 1 mm: the series chain 2 d + F(d) (2 / k_f + 1 / k_o) = 1 mm solved by
+    bisection on direct contact solves gives the twin's force."""
+    plum = obj("plum")
+    twin = GripperTwin(plum, sensor=SENSOR, material=MATERIAL, grid=(33, 33),
+                       width_m=(plum.width_mm - 1.0) * 1e-3)
+    height = profile_height(plum, twin.shape, twin.spacing)
+    compliance = 2 / 4.0 + 1 / plum.stiffness_N_mm
+    lo, hi = 0.0, 0.5
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        force = -solve_contact(height, mid, **twin.solver).force[2]
+        lo, hi = (lo, mid) if 2 * mid + force * compliance > 1.0 else (mid, hi)
+    assert twin.normal_N == pytest.approx(force, rel=0.005)
+    assert -twin.true_force()[2] == pytest.approx(force, rel=0.005)
+    assert -twin.true_force()[2] == pytest.approx(0.5595, abs=2e-3)         # golden
+    assert twin.gel_mm == pytest.approx(mid, rel=0.005)
+    # the other finger feels the same normal force, its x axis mirrored
+    assert twin.true_force("right")[2] == twin.true_force("left")[2]
+
+
+def test_twin_no_contact_reads_the_reference():
+    grape = obj("grape")
+    twin = GripperTwin(grape, sensor=SENSOR, material=MATERIAL, grid=(33, 33), size=SIZE)
+    ref = rasterize(gelsight_pattern("A-II"), size=SIZE)
+    images = twin.read_sensors()
+    assert set(images) == {"left", "right"}
+    assert np.array_equal(images["left"], ref) and np.array_equal(twin.reference, ref)
+    assert np.array_equal(twin.true_force(), np.zeros(3))
+    twin.move(0.0, 0.005)
+    twin.step(1.3)                                            # 3 mm approach at 5 mm/s + 3.5 mm
+    assert twin.width() == pytest.approx((grape.width_mm - 3.5) * 1e-3)
+    assert twin.normal_N > 1.0 and (twin.read_sensors()["left"] != ref).sum() > 10
+
+
+def _centroids(image):
+    labels, n = ndimage.label(image > 0)
+    return np.array(ndimage.center_of_mass(image > 0, labels, range(1, n + 1)))[:, ::-1]  # (x, y)
+
+
+def _marker_shift(before, after):
+    """Per-marker centroid motion (x, y) px, markers matched to their nearest neighbour."""
+    a, b = _centroids(before), _centroids(after)
+    nearest = np.argmin(((a[:, None] - b[None]) ** 2).sum(-1), axis=1)
+    return b[nearest] - a
+
+
+@pytest.mark.parametrize("load, axis", [((0.0, 0.8), 1), ((0.8, 0.0), 0)])
+def test_marker_images_shift_with_the_shear(load, axis):
+    plum = obj("plum")
+    kw = dict(sensor=SENSOR, material=MATERIAL, grid=(33, 33), size=(128, 128),
+              width_m=(plum.width_mm - 1.5) * 1e-3)
+    pressed = GripperTwin(plum, **kw)
+    sheared = GripperTwin(plum, load=lambda t: np.array(load), **kw)
+    sheared.step(0.05)
+    assert not sheared.sliding
+    assert sheared.true_force()[axis] == pytest.approx(0.4)                 # half on each pad
+    assert sheared.true_force("right")[0] == pytest.approx(-sheared.true_force()[0])
+    for finger, sign in (("left", 1.0), ("right", -1.0 if axis == 0 else 1.0)):
+        shift = _marker_shift(pressed.read_sensors()[finger], sheared.read_sensors()[finger])
+        moved = np.abs(shift).max(1) > 0
+        assert moved.sum() >= 4                                           # near the contact
+        along, across = sign * shift[moved, axis].mean(), abs(shift[moved, 1 - axis].mean())
+        assert along > 0.15 and across < 0.2 * along                      # px; ~0.1 mm at 0.4 N
+
+
+# -- closed loop --------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("name", ["strawberry", "wood_block"])     # 0.4 N/mm ... 80 N/mm
+def test_grasp_reaches_the_target_force(name):
+    ep = episode(name, grasp_s=3.5)
+    m = grasp_metrics(ep, tolerance_N=0.25)
+    assert m["force_error_N"] < 0.05 and m["success"] == 1.0 and m["crushed"] == 0.0
+    assert ep["events"]["contact"].size == 1
+    # a noisy, lagging estimate still holds the target within the tolerance
+    ep = episode(name, oracle(noise_N=0.03, lag_frames=1, seed=1), grasp_s=3.5)
+    assert grasp_metrics(ep, tolerance_N=0.25)["force_error_N"] < 0.1
+
+
+def test_fragile_object_is_not_crushed_unless_the_force_is_under_read():
+    chip = obj("potato_chip")
+    ep = episode("potato_chip", grasp_s=2.5)
+    assert not ep["crushed"] and ep["max_normal_N"] < chip.target_N + 0.1 < chip.crush_N
+    # a model reading a tenth of the force squeezes towards 6 N, past the 2.5 N crush force
+    ep = episode("potato_chip", oracle(gain=0.1), grasp_s=2.5)
+    m = grasp_metrics(ep, tolerance_N=0.25)
+    assert ep["crushed"] and m["crushed"] == 1.0 and m["success"] == 0.0
+    assert ep["max_normal_N"] > chip.crush_N
+
+
+PULL = {"start_s": 0.5, "rate_N_s": 8.0, "max_N": 1.5, "direction_deg": 90.0, "monitor_s": 2.5}
+
+
+def test_slip_is_detected_within_the_window_and_stopped():
+    ep = episode("banana", grasp_s=2.5, pull=PULL)
+    m = slip_metrics(ep)
+    assert ep["onset"] is not None and ep["onset"] > ep["marks"]["pull"]
+    assert m["detected"] == 1.0 and 0.0 <= m["detected_s"] <= 0.5
+    assert 0.05 < m["slip_mm"] < 1.0 and m["success"] == 1.0 and m["false_alarms"] == 0.0
+    slip = np.hypot(*ep["slip_mm"].T)
+    assert slip[-1] - slip[-20] < 1e-6                               # stopped
+    # without the avoider the same pull drags the object out of the grasp
+    passive = episode("banana", grasp_s=2.5, pull=PULL, controller={"threshold_N": np.inf})
+    assert passive["dropped"] and slip_metrics(passive)["success"] == 0.0
+
+
+def test_pull_below_friction_no_slip_no_false_detection():
+    gentle = {**PULL, "rate_N_s": 1.0, "max_N": 0.3}
+    ep = episode("plum", grasp_s=2.5, pull=gentle)
+    m = slip_metrics(ep)
+    assert ep["onset"] is None and "detected_s" not in m
+    assert m["slip_mm"] == 0.0 and m["detected"] == 0.0 and m["tightenings"] == 0.0
+    assert m["success"] == 1.0
+    assert ep["force_true"][-1, 1] == pytest.approx(0.5 * (obj("plum").weight_N + 0.3))
+
+
+# -- the node ---------------------------------------------------------------------------------
+
+def test_study_outputs_and_metric_names():
+    kw = dict(objects=DEFAULT_OBJECTS, grasp=["grape"], slip=["glue_stick"], sensor=SENSOR,
+              material=MATERIAL, size=(64, 64), duration_s=2.0, pull={**PULL, "monitor_s": 1.5},
+              twin=TWIN)
+    out = run_study(oracle_factory(), **kw)
+    n = out["grasp"]["grape"]["time"].size
+    assert n == int(round((0.25 + 2.0) * 20)) + 1
+    assert out["grasp"]["grape"]["force_pred"].shape == (n, 3)
+    assert out["grasp"]["grape"]["force_pred"].dtype == np.float32
+    assert set(out["slip"]["glue_stick"]["events"]) == {"contact", "detected"}
+    assert {"grasp_grape", "slip_glue_stick", "images"} <= set(out["figures"])
+    assert all(bytes(v[:8]) == PNG for v in out["figures"].values())
+    metrics = out["metrics"]
+    for key in ("force_error_N", "crushed", "success", "pred_error_N"):
+        assert f"control/grasp/grape/{key}" in metrics and f"control/mean/grasp/{key}" in metrics
+    for key in ("detected_s", "slip_mm", "slip_mm_passive", "success"):
+        assert f"control/slip/glue_stick/{key}" in metrics
+    assert metrics["control/grasp/grape/success"] == 1.0
+    assert metrics["control/slip/glue_stick/slip_mm_passive"] > 5.0
+    assert out["attrs"]["targets_N"] == {"grape": 0.6, "glue_stick": 1.2}
+    oracle_node = control_study(model=None, seed=0, **kw)
+    assert oracle_node["attrs"]["predictor"] == "oracle"
+    assert oracle_node["metrics"] == metrics
+    with pytest.raises(KeyError, match="unicorn"):
+        run_study(oracle_factory(), **{**kw, "grasp": ["unicorn"]})
+    with pytest.raises(KeyError, match="speed"):
+        run_study(oracle_factory(), **{**kw, "twin": {"speed": 1}})
+
+
+class ConstantPredictor:
+    """Reads a fixed force whatever it sees; remembers the reference it was reset with."""
+
+    def __init__(self, force):
+        self.force, self.references = np.asarray(force, np.float32), []
+
+    def reset(self, reference=None):
+        self.references.append(reference)
+
+    def step(self, image):
+        return self.force
+
+
+def test_study_node_loads_the_model_artifact(monkeypatch):
+    torch = pytest.importorskip("torch")
+    predictor, calls = ConstantPredictor((0.0, 0.0, -2.0)), []
+
+    def load_predictor(artifact, prefix="genforce_comp"):
+        calls.append((artifact, prefix))
+        return predictor
+
+    fake = type(sys)("stages.force.model")
+    fake.load_predictor = load_predictor
+    monkeypatch.setitem(sys.modules, "stages.force.model", fake)
+    threads = torch.get_num_threads()
+    artifact = {"genforce_comp/weights": np.zeros(3)}
+    out = control_study(model=artifact, objects=DEFAULT_OBJECTS, grasp=["potato_chip"], slip=[],
+                        sensor=SENSOR, material=MATERIAL, size=(64, 64), duration_s=2.0, pull={},
+                        seed=0, twin=TWIN)
+    assert calls == [(artifact, "genforce_comp")] and out["attrs"]["predictor"] == "genforce_comp"
+    assert torch.get_num_threads() == threads
+    assert predictor.references[0].shape == (64, 64)           # the twin's no-contact image
+    # a model stuck at 2 N (tared to 0 before contact) never feels the chip and crushes it
+    assert out["metrics"]["control/grasp/potato_chip/crushed"] == 1.0
+    assert out["grasp"]["potato_chip"]["events"]["contact"].size == 0
+
+
+def test_catalogue_entries_are_checked():
+    entry = dict(DEFAULT_OBJECTS["grape"])
+    del entry["mu"]
+    with pytest.raises(KeyError, match="'grape'.*mu"):
+        grasp_object("grape", entry)
+    with pytest.raises(ValueError, match="fragility"):
+        grasp_object("grape", {**DEFAULT_OBJECTS["grape"], "fragility": "glass"})
+    targets = {n: grasp_object(n, e).target_N for n, e in DEFAULT_OBJECTS.items()}
+    assert targets["grape"] == 0.6 and targets["plum"] == 0.8 and targets["wood_block"] == 1.2
