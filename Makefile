@@ -4,7 +4,7 @@ STAMP := .venv/.setup-stamp
 
 TEST_STAMP := .venv/.setup-test-stamp
 
-.PHONY: setup setup-test run test bench dvc clean-store
+.PHONY: setup setup-test run test bench baseline dvc clean-store
 
 setup: $(STAMP)
 
@@ -25,8 +25,14 @@ run: setup
 test: setup-test
 	$(PY) -m pytest -q
 
+# every benchmark, then one table of the ratios they measured (benchmarks/run_all.py)
 bench: setup
-	$(PY) benchmarks/engine.py
+	$(PY) benchmarks/run_all.py
+
+# the ci profile's metrics become the regression baseline CI compares against (keeps tolerances)
+baseline: setup
+	.venv/bin/pipeline run --profile ci --store artifacts-ci
+	.venv/bin/pipeline metrics --profile ci --store artifacts-ci --save-baseline baselines/ci.yaml
 
 dvc: setup
 	.venv/bin/pipeline dvc

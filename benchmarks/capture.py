@@ -1,6 +1,7 @@
 """Sustained capture rate against the loopback emulators, and per-device read latency.
 
-Run: python benchmarks/capture.py   (about 30 s on a 2-core CPU)
+Run: python benchmarks/capture.py [--quick]   (about 30 s on a 2-core CPU; --quick: two device
+sets and 20 latency samples)
 
 The capture node runs emulated (the FEM-lite twin solves every robot pose) on the GelSight
 twin's ci-size solver grid (33 x 33), unpaced (rate_hz 0), along the collection protocol for
@@ -10,6 +11,7 @@ each movement).  Each device set prints frames/s of captured contact time and it
 samples is the bottleneck on hardware).  Camera frames are stored at 640 x 480.  Then every
 device is read 60 times after as many robot moves; latency = the read call's wall time.
 """
+import argparse
 import os
 import sys
 import tempfile
@@ -20,6 +22,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import numpy as np                                                        # noqa: E402
 import yaml                                                               # noqa: E402
 
+from benchmarks.summary import record                                     # noqa: E402
 from stages.capture.devices import Robot                                  # noqa: E402
 from stages.capture.emulators import Emulators                            # noqa: E402
 from stages.capture.poses import to_pose                                  # noqa: E402
@@ -57,7 +60,7 @@ def run(traj, meshes, p, devices, rate_hz=0.0, **device_params):
         return final["attrs"], time.perf_counter() - t
 
 
-def latency(traj, meshes, p):
+def latency(traj, meshes, p, samples=60):
     devices = ["robot", "netft", "serial_ft", "camera", "xela", "slcan"]
     spec = p["sensors"]["gelsight-r10"]
     from stages.sim.indenters import mesh_from_artifact
@@ -70,7 +73,7 @@ def latency(traj, meshes, p):
             c.open()
         robot = emu.clients["robot"]
         origin = Robot.defaults["origin"]
-        rows = np.flatnonzero(traj["contact_id"] == 0)[:60]
+        rows = np.flatnonzero(traj["contact_id"] == 0)[:samples]
         for r in rows:
             pos = traj["position"][r]
             t = time.perf_counter()
@@ -87,6 +90,10 @@ def latency(traj, meshes, p):
 
 
 def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="two device sets, 20 latency samples")
+    args = ap.parse_args()
+    samples = 20 if args.quick else 60
     p = params()
     art = indenter_set(["sphere"])
     meshes = {f"meshes/sphere/{k}": v for k, v in art["meshes"]["sphere"].items()}
@@ -97,17 +104,22 @@ def main():
     run(warm, meshes, p, ["robot", "netft", "camera"])            # solver kernel tables, imports
     print(f"sustained capture rate (emulated, unpaced), vs the paper's {PAPER_HZ:g} Hz")
     print(f"{'devices':34s} {'frames':>6s} {'wall s':>7s} {'frames/s':>9s} {'ratio':>6s}")
-    for devices in (["robot", "netft"], ["robot", "netft", "camera"], ["robot", "serial_ft", "xela"],
-                    ["robot", "netft", "slcan", "camera"]):
+    sets = [["robot", "netft"], ["robot", "netft", "camera"], ["robot", "serial_ft", "xela"],
+            ["robot", "netft", "slcan", "camera"]]
+    for devices in (sets[::3] if args.quick else sets):
         attrs, wall = run(traj, meshes, p, devices)
         rate = attrs["rate_hz_achieved"]
         print(f"{' + '.join(devices):34s} {attrs['frames']:6d} {wall:7.2f} {rate:9.1f} {rate / PAPER_HZ:6.2f}")
+        record("capture", f"capture rate vs 40 Hz, {' + '.join(devices)}", f"{rate:.1f} frames/s",
+               rate / PAPER_HZ, ">= 1")
     attrs, wall = run(traj, meshes, p, ["robot", "netft", "camera"], rate_hz=PAPER_HZ)
     print(f"{'robot + netft + camera, paced 40':34s} {attrs['frames']:6d} {wall:7.2f} "
           f"{attrs['rate_hz_achieved']:9.1f} {attrs['rate_hz_achieved'] / PAPER_HZ:6.2f}")
-    print("\nper-device latency over 60 samples (robot: moveL incl. the twin's contact solve)")
+    record("capture", "paced capture at 40 Hz, robot + netft + camera",
+           f"{attrs['rate_hz_achieved']:.1f} frames/s", attrs["rate_hz_achieved"] / PAPER_HZ)
+    print(f"\nper-device latency over {samples} samples (robot: moveL incl. the twin's contact solve)")
     print(f"{'device':10s} {'mean ms':>8s} {'p95 ms':>8s}")
-    for d, ts in latency(traj, meshes, p).items():
+    for d, ts in latency(traj, meshes, p, samples).items():
         ts = 1e3 * np.asarray(ts)
         print(f"{d:10s} {ts.mean():8.2f} {np.percentile(ts, 95):8.2f}")
 

@@ -1,6 +1,6 @@
 """Speed and accuracy of the FFT contact solver (stages.sim.contact).
 
-Run: python benchmarks/contact.py   (about a minute on a 2-core CPU)
+Run: python benchmarks/contact.py [--quick]   (about a minute on a 2-core CPU; --quick skips n = 256)
 
 Scenes per grid size n: "pad", a Hertz sphere (R = 5 mm, depth 1 mm) on the 20 x 20 mm sim
 pad (half-space), the contact covering ~5% of the grid as for real indenters; "pad4", the same
@@ -11,6 +11,7 @@ Batched = 15 frames (3 positions x 5 depths, 0.2..1.0 mm) through solve_contact_
 The dense baseline builds the full 64^2 x 64^2 Boussinesq matrix and solves the contact by an
 active set with Cholesky solves; it uses the same element kernel, so its answer must match.
 """
+import argparse
 import os
 import sys
 import time
@@ -20,6 +21,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import numpy as np                                                     # noqa: E402
 from scipy import linalg                                               # noqa: E402
 
+from benchmarks.summary import record                                  # noqa: E402
 from stages.sim.contact import solve_contact, solve_contact_batch      # noqa: E402
 from stages.sim.kernels import unit_kernels                            # noqa: E402
 
@@ -76,11 +78,14 @@ def dense_solve(K, height, depth):
 
 
 def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="grids 64 and 128 only")
+    args = ap.parse_args()
     print(f"contact benchmark: sphere R={R} mm, depth {DEPTH} mm, E={E:.3g} Pa, nu={NU}, "
           f"{os.cpu_count()} CPU(s)")
     print(f"{'n':>5} {'scene':>5} {'contact px':>10} {'single ms':>10} {'batch ms/frame':>15} "
           f"{'shear ms':>9} {'mu ms':>7} {'Hertz rel err':>14}")
-    for n in (64, 128, 256):
+    for n in ((64, 128) if args.quick else (64, 128, 256)):
         for name, width, thick in (("pad", 20.0, None), ("pad4", 20.0, 4.0), ("wide", 8.0, None)):
             h, height = scene(n, width)
             kw = dict(spacing=h, E=E, nu=NU, thickness=thick)
@@ -97,6 +102,8 @@ def main():
             err_txt = f"{err:+.2e}" if thick is None else "-"
             print(f"{n:>5} {name:>5} {(res.pressure > 0).sum():>10d} {single:>10.1f} "
                   f"{batch:>15.1f} {shear:>9.1f} {fric:>7.1f} {err_txt:>14}")
+            if thick is None:
+                record("contact", f"Hertz force rel. error, {name} {n}^2", f"{single:.1f} ms/frame", err)
     print()
     print("dense direct baseline, 64^2 grid (4096 x 4096 influence matrix, active-set Cholesky):")
     for name, width in (("pad", 20.0), ("wide", 8.0)):
@@ -117,6 +124,11 @@ def main():
               f"(solve only {solve_ms / fft_ms:4.1f}x); |dF|/F = "
               f"{abs(-fft.force[2] - f_dense) / f_dense:.1e}, max|dp|/p_max = "
               f"{np.abs(fft.pressure - p_dense).max() / p_dense.max():.1e}")
+        record("contact", f"FFT speed-up vs dense 64^2, {name}",
+               f"dense {total:.0f} ms / FFT {fft_ms:.1f} ms", total / fft_ms)
+        record("contact", f"  solve only, {name}", f"dense {solve_ms:.0f} ms / FFT {fft_ms:.1f} ms",
+               solve_ms / fft_ms)
+        record("contact", f"  |dF|/F FFT vs dense, {name}", "", abs(-fft.force[2] - f_dense) / f_dense)
 
 
 if __name__ == "__main__":

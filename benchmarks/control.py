@@ -1,6 +1,7 @@
 """Control-loop latency per step of the gripper twin (stages.control).
 
-Run: python benchmarks/control.py   (about half a minute on a 2-core CPU)
+Run: python benchmarks/control.py [--quick]   (about half a minute on a 2-core CPU; --quick: the
+two 33^2-grid episodes plum 96 px and wood_block 128 px)
 
 One sensor frame of the loop is: twin physics (finger kinematics, series normal chain, slip, in
 5 ms substeps), contact solve (a pressed solve and, with shear, a sheared one, only when the
@@ -14,6 +15,7 @@ module imports, else the oracle.  Columns: mean ms per frame over the frames whe
 ran (solve, render: frames whose contact changed), how many frames ran it, and the whole
 frame's mean and 95th percentile against the 50 ms a 20 Hz loop allows.
 """
+import argparse
 import os
 import sys
 import time
@@ -22,6 +24,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import numpy as np                                                     # noqa: E402
 
+from benchmarks.summary import record                                  # noqa: E402
 from stages.control.controller import GraspController, OraclePredictor, SlipAvoider  # noqa: E402
 from stages.control.episodes import pull_force, weight_force          # noqa: E402
 from stages.control.gripper import GripperTwin                         # noqa: E402
@@ -98,19 +101,28 @@ def episode(name, grid, size, predictor_cache):
 
 
 def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="two of the four episodes")
+    args = ap.parse_args()
     print(f"control-loop latency per step: {RATE_HZ:.0f} Hz frames, grasp {GRASP_S} s + hold "
           f"{HOLD_S} s + pull {SLIP_S} s, {os.cpu_count()} CPU(s)")
     cache = {}
     head = (f"{'object':>11} {'grid':>6} {'image':>7} " + " ".join(f"{s + ' ms':>10}" for s in STAGES)
             + f" {'frames':>11} {'frame ms':>9} {'p95 ms':>7} {'of 50 ms':>8}")
     rows = []
-    for name, grid, size in (("plum", (33, 33), (96, 96)), ("plum", (33, 33), (128, 128)),
-                             ("plum", (65, 65), (128, 128)), ("wood_block", (33, 33), (128, 128))):
+    episodes = [("plum", (33, 33), (96, 96)), ("plum", (33, 33), (128, 128)),
+                ("plum", (65, 65), (128, 128)), ("wood_block", (33, 33), (128, 128))]
+    for name, grid, size in (episodes[::3] if args.quick else episodes):
         times, frame_ms, label, n = episode(name, grid, size, cache)
         cells = " ".join(f"{1e3 * np.mean(times[s]) if times[s] else 0.0:>10.2f}" for s in STAGES)
         rows.append(f"{name:>11} {grid[0]:>3}^2 {size[0]:>4}px {cells} "
                     f"{len(times['solve']):>4} of {n:<4} {frame_ms.mean():>9.1f} "
                     f"{np.percentile(frame_ms, 95):>7.1f} {frame_ms.mean() / 50.0:>8.0%}")
+        case = f"{name} {grid[0]}^2 {size[0]}px"
+        record("control", f"frame latency vs 50 ms, mean, {case}", f"{frame_ms.mean():.1f} ms",
+               frame_ms.mean() / 50.0, "<= 1")
+        record("control", f"frame latency vs 50 ms, p95, {case}", f"{np.percentile(frame_ms, 95):.1f} ms",
+               np.percentile(frame_ms, 95) / 50.0, "<= 1")
     print(f"predictor: {label}")
     print("(solve / render: mean over the frames whose contact changed, counted under 'frames')")
     print(head)

@@ -25,6 +25,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from benchmarks.summary import record  # noqa: E402
+
 
 def synthetic_project(root: Path, n_nodes: int, modules: int = 5) -> Path:
     """n_nodes in layers of 10; each node reads up to two nodes of the layer before."""
@@ -196,6 +198,7 @@ def main() -> None:
     print(f"{'benchmark':52s} {'measured':28s} {'ratio':>8s}  target")
     for name, measured, ratio, target in rows:
         print(f"{name:52s} {measured:28s} {ratio:8.3f}  {target}")
+        record("engine", name.strip(), measured, ratio, target)
     print(f"(store arrays: {store['MB']:.0f} MB of 256x256 marker frames + forces, lzf, same chunks)")
 
 

@@ -29,6 +29,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import numpy as np                                                              # noqa: E402
 
 import stages.markers.render as render                                          # noqa: E402
+from benchmarks.summary import record                                           # noqa: E402
 from stages.markers.mitsuba_backend import llvm_usable, mitsuba, thread_count   # noqa: E402
 from stages.markers.patterns import gelsight_pattern, pattern                   # noqa: E402
 from stages.markers.render import LABEL_KEYS, Renderer, render_sequence         # noqa: E402
@@ -180,11 +181,17 @@ def main():
                 print(f"{backend:8s} {look:9s} {size[0]:>3d}x{size[1]:<4d} {spp:>3d} {n:>6d} "
                       f"{node:>10.1f} {bare:>10.1f} {node / bare:>6.2f} {node_cpu:>11.2f} "
                       f"{bare_cpu:>11.2f}", flush=True)
+                record("render", f"node / bare Mitsuba, {backend} {look} {size[0]}x{size[1]}",
+                       f"{node:.1f} / {bare:.1f} img/s", node / bare, ">= 0.85")
     render.CHUNK = chunk
     counts = (50, 200) if args.quick else (100, 1000)
     print(f"\npeak memory of render_sequence (look none, 128x128, {backends[0]}), tracemalloc:")
+    peaks = []
     for n in counts:
-        print(f"  {n:5d} frames: {peak_mb(n, (128, 128), backends[0]):7.2f} MiB", flush=True)
+        peaks.append(peak_mb(n, (128, 128), backends[0]))
+        print(f"  {n:5d} frames: {peaks[-1]:7.2f} MiB", flush=True)
+    record("render", f"peak memory, {counts[1]} vs {counts[0]} frames",
+           f"{peaks[1]:.2f} / {peaks[0]:.2f} MiB", peaks[1] / peaks[0], "<= 1.1")
 
 
 if __name__ == "__main__":

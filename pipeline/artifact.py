@@ -68,6 +68,7 @@ class ArtifactWriter:
         self.metrics: dict[str, float] = {}
         self._streams: dict[str, h5py.Dataset] = {}
         self._whole: set[str] = set()
+        self._json_attrs: set[str] = set()
         self._t0 = time.time()
 
     def put(self, name: str, value: Any) -> None:
@@ -110,6 +111,10 @@ class ArtifactWriter:
             if k == PROVENANCE_ATTR:
                 raise PipelineError(f"attribute name '{k}' is reserved")
             self.attrs[k] = _plain_attr(k, v)
+            if isinstance(self.attrs[k], str) and not isinstance(v, str):  # stored as JSON text
+                self._json_attrs.add(k)
+            else:
+                self._json_attrs.discard(k)
 
     def commit(self) -> dict:
         for name in self._streams:  # an empty stream is still a dataset
@@ -121,7 +126,7 @@ class ArtifactWriter:
         seconds = round(time.time() - self._t0 + self.provenance.pop("setup_seconds", 0.0), 4)
         prov = {**self.provenance, "digest": digest, "seconds": seconds,
                 "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-                "metrics": self.metrics}
+                "metrics": self.metrics, "json_attrs": sorted(self._json_attrs)}
         for k, v in self.attrs.items():
             self.file.attrs[k] = v
         self.file.attrs[PROVENANCE_ATTR] = json.dumps(prov, sort_keys=True)
@@ -155,7 +160,7 @@ class LazyArray:
         return self._ds[item]
 
     def __array__(self, dtype=None, copy=None):
-        arr = self[()]
+        arr = np.asarray(self[()])  # a 0-d dataset reads as a scalar
         return arr.astype(dtype) if dtype is not None else arr
 
     def iter_chunks(self, rows: int) -> Iterator[np.ndarray]:
@@ -187,7 +192,13 @@ class Artifact(Mapping):
 
     @property
     def attrs(self) -> dict[str, Any]:
-        return _user_attrs(self._file)
+        """Attributes as written: nested values (dicts, lists of strings...) are stored as
+        JSON text and read back decoded."""
+        attrs = _user_attrs(self._file)
+        for k in self.provenance.get("json_attrs", []):
+            if k in attrs:
+                attrs[k] = json.loads(attrs[k])
+        return attrs
 
     @property
     def provenance(self) -> dict[str, Any]:

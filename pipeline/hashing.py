@@ -11,7 +11,7 @@ import math
 from typing import Any, Mapping
 
 # Bump when the store layout or the meaning of a key changes: every key changes with it.
-ENGINE_VERSION = "1"
+ENGINE_VERSION = "2"  # 2: nested attributes read back decoded (json_attrs)
 KEY_LENGTH = 32  # hex chars (128 bits)
 
 

@@ -81,3 +81,91 @@ GRAPH.node("capture", "stages.capture.session:capture",
 GRAPH.node("ingest", "stages.capture.ingest:ingest",
            params={"root": "ingest.root", "sensor": "ingest.sensor", "size": "ingest.size"}, source=True,
            description="the paper authors' published dataset layout as a contact sequence")
+
+# -- M2M translation: one generator for every pair, a training-free baseline, image metrics ----
+GRAPH.node("m2m_sim", "stages.m2m.nodes:pretrain",
+           inputs={"markers": "markers[*]"},
+           params={"skins": "m2m.pretrain.skins", "train_indenters": "splits.train_indenters",
+                   "size": "render.size", "steps": "m2m.pretrain.steps",
+                   "batch_size": "m2m.pretrain.batch_size", "lr": "m2m.pretrain.lr",
+                   "seed": "m2m.pretrain.seed", "width": "m2m.pretrain.width",
+                   "timesteps": "m2m.pretrain.timesteps"},
+           description="M2M generator trained from scratch on the 12 simulation patterns")
+GRAPH.node("m2m", "stages.m2m.nodes:finetune",
+           inputs={"base": "m2m_sim", "markers": "markers[*]"},
+           params={"skins": "m2m.finetune.skins", "train_indenters": "splits.train_indenters",
+                   "pairs_per_skin": "m2m.finetune.pairs_per_skin", "steps": "m2m.finetune.steps",
+                   "batch_size": "m2m.finetune.batch_size", "lr": "m2m.finetune.lr",
+                   "seed": "m2m.finetune.seed"},
+           description="M2M fine-tuned to the twin sensors with a few location-paired frames each")
+_EVAL = {"eval_indenters": "splits.test_indenters", "n_eval": "m2m.n_eval"}
+GRAPH.node("translate_sim", "stages.m2m.nodes:translate_sequence",
+           inputs={"model": "m2m_sim", "source_markers": "markers[skin={source}]",
+                   "target_markers": "markers[skin={target}]"},
+           params={**_EVAL, "sampler_steps": "m2m.sampler_steps"},
+           grid={"source,target": "sim_m2m.pairs"},
+           description="a simulation pattern's sequence in another pattern's style")
+_TRANSFER_PAIRS = ("homo.groups.pairs + material.groups.hard_to_soft + material.groups.soft_to_hard"
+                   " + hetero.groups.pairs")
+GRAPH.node("translate", "stages.m2m.nodes:translate_sequence",
+           inputs={"model": "m2m", "source_markers": "markers[skin={source}]",
+                   "target_markers": "markers[skin={target}]"},
+           params={**_EVAL, "sampler_steps": "m2m.sampler_steps"},
+           grid={"source,target": _TRANSFER_PAIRS},
+           description="a calibrated sensor's sequence in an uncalibrated sensor's style")
+GRAPH.node("flow_warp", "stages.m2m.nodes:flow_warp_sequence",
+           inputs={"source_markers": "markers[skin={source}]",
+                   "target_markers": "markers[skin={target}]"},
+           params=_EVAL,
+           grid={"source,target": "sim_m2m.pairs + " + _TRANSFER_PAIRS},
+           description="training-free baseline: the source's marker motion warps the target's reference")
+GRAPH.node("features", "stages.m2m.nodes:image_features",
+           inputs={"markers": "markers[skin={skin}]"}, params=_EVAL,
+           grid={"skin": "render.skins + taxels.skins"},
+           description="InceptionV3 features of a skin's evaluation frames (FID/KID)")
+GRAPH.node("sim_m2m", "stages.m2m.nodes:image_study",
+           inputs={"features": "features[*]", "translated": "translate_sim[*]", "warped": "flow_warp[*]"},
+           params={"study": "sim_m2m.study", "pairs": "sim_m2m.pairs", "kid_subset": "m2m.kid_subset"},
+           description="study sim-m2m (paper Fig. 3): FID/KID before / m2m / flow_warp, heatmaps, t-SNE")
+
+# -- force: regressors, transfer with material compensation, the studies ----------------------
+_FIT = {"config": "force.config", "steps": "force.steps", "batch_size": "force.batch_size",
+        "lr": "force.lr", "seed": "force.seed"}
+GRAPH.node("own", "stages.force.nodes:fit_own",
+           inputs={"markers": "markers[skin={skin}]"},
+           params={**_FIT, "train_indenters": "splits.train_indenters"},
+           grid={"skin": "force.skins"},
+           description="force regressor on a skin's own labels: source-only model and oracle")
+GRAPH.node("transfer", "stages.force.nodes:fit_transfer",
+           inputs={"translated": "translate[source={source},target={target}]",
+                   "source_calibration": "calibrate[sensor={source_spec[sensor]}]",
+                   "target_calibration": "calibrate[sensor={target_spec[sensor]}]"},
+           params={**_FIT, "finetune_steps": "force.finetune_steps",
+                   "train_indenters": "splits.train_indenters",
+                   "source_spec": "skins.{source}", "target_spec": "skins.{target}"},
+           grid={"source,target": _TRANSFER_PAIRS},
+           description="GenForce: regressors on translated images with source labels, raw and compensated")
+_STUDY = {"features": "features[*]", "translated": "translate[*]", "warped": "flow_warp[*]",
+          "own": "own[*]", "transfer": "transfer[*]", "markers": "markers[*]"}
+_STUDY_PARAMS = {"test_indenters": "splits.test_indenters", "kid_subset": "m2m.kid_subset",
+                 "trace_frames": "force.trace_frames"}
+GRAPH.node("homo", "stages.studies:transfer_study", inputs=_STUDY,
+           params={**_STUDY_PARAMS, "study": "homo.study", "groups": "homo.groups"},
+           description="study homo (paper Fig. 4): the five GelSight twins")
+GRAPH.node("material", "stages.studies:transfer_study", inputs=_STUDY,
+           params={**_STUDY_PARAMS, "study": "material.study", "groups": "material.groups"},
+           description="study material (paper Fig. 5): seven elastomers, with and without compensation")
+GRAPH.node("hetero", "stages.studies:transfer_study", inputs=_STUDY,
+           params={**_STUDY_PARAMS, "study": "hetero.study", "groups": "hetero.groups"},
+           description="study hetero (paper Fig. 6): GelSight, TacTip, uSkin 3-axis and z-only")
+
+# -- control: the transferred force model in a gripper's loop --------------------------------
+GRAPH.node("control", "stages.control.nodes:control_study",
+           inputs={"model": "transfer[source={model_pair[0]},target={model_pair[1]}]"},
+           params={"model_pair": "control.model_pair", "objects": "control.objects",
+                   "grasp": "control.grasp", "slip": "control.slip",
+                   # the fingers carry the GelSight gel the model's target skin rides on
+                   "sensor": "sensors.gelsight-r10", "material": "materials.r10", "size": "render.size",
+                   "duration_s": "control.duration_s", "pull": "control.pull", "seed": "control.seed",
+                   "tolerance_N": "control.tolerance_N"},
+           description="study control (paper Fig. 7): grasping at a target force, slip avoidance")

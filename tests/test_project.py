@@ -35,19 +35,66 @@ def test_profiles_load(profile):
     project.load_graph().expand(params)  # every reference resolves
 
 
-def test_ci_profile_runs_and_is_then_cached(tmp_path):
-    store = str(tmp_path / "store")
+@pytest.fixture(scope="module")
+def ci_store(tmp_path_factory):
+    """The whole DAG on the ci profile, once for this module (as `.ci/run` sees it)."""
+    store = str(tmp_path_factory.mktemp("ci") / "store")
     first = json.loads(pipeline("run", "--profile", "ci", "--json", "--store", store).stdout)
+    return store, first
+
+
+def test_ci_profile_runs_and_is_then_cached(ci_store):
+    store, first = ci_store
     assert {n["status"] for n in first["nodes"]} == {"ran"}
+    names = {n["name"] for n in first["nodes"]}
+    for study in ("sim_m2m", "homo", "material", "hetero", "control", "contact_check"):
+        assert study in names                                # every study is a default target
+    assert "capture" not in names and "ingest" not in names  # source nodes run only when named
     again = json.loads(pipeline("run", "--profile", "ci", "--json", "--store", store).stdout)
     assert {n["status"] for n in again["nodes"]} == {"cached"}
     assert pipeline("verify", "--store", store).returncode == 0
 
 
-def test_noop_run_imports_no_science(tmp_path):
+def test_ci_metrics_match_the_baseline(ci_store):
+    """CI's regression gate: every ci metric within its tolerance of baselines/ci.yaml."""
+    store, _ = ci_store
+    p = pipeline("metrics", "--profile", "ci", "--store", store, "--baseline",
+                 str(ROOT / "baselines" / "ci.yaml"), check=False)
+    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-2000:]
+    assert p.stdout.splitlines()[-1].startswith("0 regressions in ")
+
+
+def test_a_worse_model_fails_the_baseline(ci_store):
+    """An M2M generator trained for one step instead of the ci profile's steps: the sim-m2m
+    FID after translation regresses, and the comparison exits 1 naming the metric."""
+    store, _ = ci_store
+    worse = ("-p", "m2m.pretrain.steps=1")
+    pipeline("run", "sim_m2m", "--profile", "ci", "--store", store, *worse)
+    p = pipeline("metrics", "--profile", "ci", "--store", store, *worse, "--baseline",
+                 str(ROOT / "baselines" / "ci.yaml"), check=False)
+    assert p.returncode == 1
+    rows = {line.split()[1]: line for line in p.stdout.splitlines() if line.startswith(("ok", "REGRESSION"))}
+    fid = rows["sim-m2m/mean/m2m/fid"]
+    assert fid.startswith("REGRESSION") and "missing" not in fid     # measured, and worse
+    assert rows["sim-m2m/mean/before/fid"].startswith("ok")          # the untranslated sets are the same
+
+
+def test_report_of_the_ci_store(ci_store, tmp_path):
+    """The report is built from the store alone: a section per study, figures on disk."""
+    store, _ = ci_store
+    out = tmp_path / "report"
+    p = pipeline("report", "--profile", "ci", "--store", store, "--out", str(out))
+    page = (out / "index.html").read_text()
+    assert p.stdout.strip() == str(out / "index.html")
+    for study in ("sim-m2m", "homo", "material", "hetero", "control", "segment"):
+        assert f"id='ns-{study}'" in page or f'id="ns-{study}"' in page, study
+    figures = list((out / "figures").glob("*.png"))
+    assert len(figures) >= 20 and all(f.stat().st_size > 1000 for f in figures[:5])
+
+
+def test_noop_run_imports_no_science(ci_store):
     """Deciding that nothing is stale must not import torch, mitsuba, cv2 or even h5py."""
-    store = str(tmp_path / "store")
-    pipeline("run", "--profile", "ci", "--store", store)
+    store, _ = ci_store
     code = ("import sys; from pipeline.cli import main; "
             f"rc = main(['run', '--profile', 'ci', '--store', {store!r}]); "
             "heavy = sorted(m for m in ('torch', 'mitsuba', 'cv2', 'h5py', 'trimesh', 'scipy', 'numpy') "

@@ -41,8 +41,8 @@ def oracle_factory(*, finger: str = "left", noise_N: float = 0.0, lag_frames: in
 def control_study(*, model, objects: Mapping, grasp: list, slip: list, sensor: Mapping,
                   material: Mapping, size, duration_s: float, pull: Mapping, seed: int = 0,
                   twin: Mapping | None = None, controller: Mapping | None = None,
-                  tolerance_N: float = 0.25) -> dict:
-    """Node `control`.  model: an artifact holding force-model weights (loaded with
+                  tolerance_N: float = 0.25, model_pair=None) -> dict:
+    """Node `control`.  model_pair: the (source, target) skins of `model`, for the record.  model: an artifact holding force-model weights (loaded with
     stages.force.model.load_predictor, prefix "genforce_comp"); None runs the oracle (the
     twin's true force), the ceiling any model is measured against.  seed: the oracle's noise
     stream (the model's predictions are deterministic).  See run_study."""

@@ -28,7 +28,8 @@ def test_round_trip_and_record(tmp_path):
     w.put("scalar", np.float64(2.5))
     for i in range(3):
         w.append("images", np.full((4, 5, 5), i, np.uint8))
-    w.set_attrs({"backend": "scalar_rgb", "size": 64, "ratios": [1.0, 2.0]})
+    w.set_attrs({"backend": "scalar_rgb", "size": 64, "ratios": [1.0, 2.0],
+                 "config": {"width": 16, "mults": [1, 2]}, "skins": ["a", "b"], "note": '{"x": 1}'})
     w.metrics["x/mae"] = 0.25
     rec = w.commit()
     assert rec["instance"] == "n[a=1]" and rec["bytes"] == os.path.getsize(store.path("k1"))
@@ -39,7 +40,9 @@ def test_round_trip_and_record(tmp_path):
         assert np.asarray(a["force"]).tolist() == [[0, 1, 2], [3, 4, 5]]
         assert list(a["names"][()]) == ["cone", "sphere"]
         assert a["scalar"][()] == 2.5 and a["scalar"].shape == ()
-        assert a.attrs == {"backend": "scalar_rgb", "size": 64, "ratios": [1.0, 2.0]}
+        assert np.asarray(a["scalar"]).shape == () and float(np.asarray(a["scalar"])) == 2.5
+        assert a.attrs == {"backend": "scalar_rgb", "size": 64, "ratios": [1.0, 2.0],  # nested: JSON
+                           "config": {"width": 16, "mults": [1, 2]}, "skins": ["a", "b"], "note": '{"x": 1}'}
         assert a.metrics == {"x/mae": 0.25}
         assert a.provenance["digest"] == rec["digest"]
     assert verify_file(store.path("k1")) == (True, "ok")

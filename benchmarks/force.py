@@ -1,0 +1,100 @@
+"""Speed of the force regressor (stages.force) on CPU: training, batch inference, streaming.
+
+Run: python benchmarks/force.py [--steps 40] [--config '{"input_size": 64}'] [--quick]   (< 2 min, 2 cores;
+--quick: 10 training steps, one thread)
+
+Data: 30 contact sequences of 50 frames of 128x128 uint8 0/255 marker-like images (random
+dots; the speed does not depend on the content), the default-profile size.  Columns are
+torch thread counts.  Rows:
+  train samples/s     contact windows per second (batch 4, windows up to 24 frames, padded)
+  train frames/s      frames through forward + backward per second
+  200-step fit (s)    one default-profile training (200 steps) at that speed
+  predict frames/s    predict_contacts over the 1500 frames (contacts batched, state reset)
+  stream ms/frame     StreamingPredictor.step latency (median over 200 frames)
+  x 40 Hz             how many times faster than a 40 Hz sensor (25 ms per frame) streaming is
+  cpu/wall            process CPU time over wall time while training: about the thread count
+                      on an idle machine, lower when other processes share the cores
+"""
+import argparse
+import json
+import os
+import sys
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+import numpy as np                                                              # noqa: E402
+import torch                                                                    # noqa: E402
+
+from benchmarks.summary import record                                           # noqa: E402
+from stages.force.model import StreamingPredictor, model_config, predict_contacts  # noqa: E402
+from stages.force.train import fit, make_sequences, torch_threads               # noqa: E402
+
+SENSOR_HZ = 40.0
+FIT_STEPS, BATCH, SEQ_LEN = 200, 4, 24          # the default profile's training
+
+
+def marker_like(rng, n, size=128):
+    """n random binary dot images (T,size,size) uint8 and a reference."""
+    base = rng.random((size // 8, size // 8)) < 0.5
+    ref = np.kron(base, np.ones((8, 8), bool)).astype(np.uint8) * 255
+    shift = rng.integers(-2, 3, (n, 2))
+    return np.stack([np.roll(ref, tuple(s), (0, 1)) for s in shift]), ref
+
+
+def bench(threads, config, steps, contacts=30, length=50):
+    rng = np.random.default_rng(0)
+    images, ref = marker_like(rng, contacts * length)
+    forces = rng.uniform(-4, 0, (contacts * length, 3)).astype(np.float32)
+    seqs = make_sequences(np.split(images, contacts), np.split(forces, contacts), ref, config)
+    kw = dict(batch_size=BATCH, seq_len=SEQ_LEN, lr=0.05, threads=threads)
+    fit(seqs, config, steps=3, **kw)                                          # warm-up
+    cpu, wall = time.process_time(), time.perf_counter()
+    model, hist = fit(seqs, config, steps=steps, **kw)
+    cpu_ratio = (time.process_time() - cpu) / (time.perf_counter() - wall)
+    model.set_reference(ref)
+    with torch_threads(threads):
+        cid = np.repeat(np.arange(contacts), length)
+        predict_contacts(model, images[:length], cid[:length])
+        t = time.perf_counter()
+        predict_contacts(model, images, cid)
+        predict_fps = len(images) / (time.perf_counter() - t)
+        stream = StreamingPredictor(model)
+        lat = []
+        for img in images[:200]:
+            t = time.perf_counter()
+            stream.step(img)
+            lat.append(time.perf_counter() - t)
+    ms = 1e3 * float(np.median(lat[10:]))
+    return {"train samples/s": hist["samples_per_s"], "train frames/s": hist["frames_per_s"],
+            f"{FIT_STEPS}-step fit (s)": FIT_STEPS * hist["seconds"] / steps, "predict frames/s": predict_fps,
+            "stream ms/frame": ms, "x 40 Hz": 1e3 / SENSOR_HZ / ms, "cpu/wall": cpu_ratio}
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--steps", type=int, default=40, help="timed training steps per column")
+    ap.add_argument("--config", default="{}", help="force-model config overrides (JSON)")
+    ap.add_argument("--threads", default="1,2", help="torch thread counts to compare")
+    ap.add_argument("--quick", action="store_true", help="10 timed training steps, one thread")
+    args = ap.parse_args()
+    if args.quick:
+        args.steps, args.threads = 10, "1"
+    config = model_config(json.loads(args.config))
+    threads = [int(t) for t in args.threads.split(",")]
+    print(f"config: {json.dumps(config)}")
+    print(f"torch {torch.__version__}, {os.cpu_count()} CPUs")
+    cols = {t: bench(t, config, args.steps) for t in threads}
+    rows = list(next(iter(cols.values())))
+    print(f"{'':20s}" + "".join(f"{f'threads={t}':>12s}" for t in threads))
+    for r in rows:
+        print(f"{r:20s}" + "".join(f"{cols[t][r]:12.1f}" if cols[t][r] >= 10 else f"{cols[t][r]:12.2f}"
+                                   for t in threads))
+    for t in threads:
+        fps, ms = cols[t]["predict frames/s"], cols[t]["stream ms/frame"]
+        record("force", f"batch predict vs 40 Hz, threads={t}", f"{fps:.0f} frames/s", fps / SENSOR_HZ, ">= 1")
+        record("force", f"streaming vs 40 Hz, threads={t}", f"{ms:.2f} ms/frame", cols[t]["x 40 Hz"], ">= 1")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,148 @@
+"""Material compensation of force labels (paper, Methods and Supp. Text 9).
+
+A sensor's calibration indentation gives the normal force against normalised depth while
+loading and while unloading.  Each branch is fitted with a 2nd-degree polynomial of the
+normal-force magnitude |Fz|,
+
+    |Fz|(d) = a d^2 + b d        (d = normalised depth)
+
+with no constant term: there is no force at zero depth, and the ratio of two such polynomials
+stays finite as d -> 0, where it tends to the ratio of the curves' slopes b_t / b_s.  So the
+label scale
+
+    r(d) = P_target(d) / P_source(d) = (a_t d + b_t) / (a_s d + b_s)
+
+is computed in this divided form at every depth and small depths need no special case.
+:func:`fit_curves` refuses a curve that is not positive on (0, 1]; ``eps`` guards the secant
+slope a d + b past the calibrated range (d > 1), where a fitted curve may bend down to zero:
+both slopes are clamped to at least eps.
+
+All three axes are scaled by the normal-force ratio, as in the paper (friction differences
+between elastomers are not modelled).  Which curve a frame uses: phase 0 (press) loading;
+phases 1 and 2 (shear out and back, at constant depth right after pressing) loading too, since
+the elastomer has not been unloaded (the simulation twin uses the loading stiffness there);
+phase 3 (release) unloading.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+
+PHASES = (0, 1, 2, 3)          # press, shear out, shear back, release
+UNLOADING_PHASES = (3,)
+
+
+@dataclass(frozen=True)
+class Curves:
+    """One sensor's calibration: polynomial coefficients (a, b, 0), highest power first
+    (np.polyval order), of |Fz| against normalised depth for each branch."""
+    loading: tuple[float, float, float]
+    unloading: tuple[float, float, float]
+
+    def as_dict(self) -> dict:
+        return {"loading": list(self.loading), "unloading": list(self.unloading)}
+
+    @classmethod
+    def from_dict(cls, d: Mapping) -> "Curves":
+        return cls(tuple(float(v) for v in d["loading"]), tuple(float(v) for v in d["unloading"]))
+
+    def force(self, normalised_depth, loading) -> np.ndarray:
+        """|Fz| the curves predict at each depth, loading or unloading branch per frame."""
+        d = np.asarray(normalised_depth, float)
+        return np.where(np.asarray(loading, bool), np.polyval(self.loading, d), np.polyval(self.unloading, d))
+
+
+def _fit_branch(d: np.ndarray, f: np.ndarray, name: str) -> tuple[float, float, float]:
+    if d.size < 2 or np.ptp(d) <= 0:
+        raise ValueError(f"fit_curves: the {name} branch needs at least 2 distinct depths, "
+                         f"got {d.size} frames")
+    a, b = np.linalg.lstsq(np.c_[d * d, d], f, rcond=None)[0]
+    if not (b > 0 and a + b > 0):       # a d + b > 0 on (0, 1]: P(d) > 0 there
+        raise ValueError(f"fit_curves: the {name} curve is not positive on (0, 1] "
+                         f"(a={a:.4g}, b={b:.4g}): no usable calibration")
+    return (float(a), float(b), 0.0)
+
+
+def fit_curves(normalised_depth, force, loading) -> Curves:
+    """Fit the loading and unloading curves of a calibration (calibrate artifact arrays:
+    normalised_depth (N,), force (N,3) N, loading (N,) bool)."""
+    d = np.asarray(normalised_depth, float)
+    force = np.asarray(force, float)
+    loading = np.asarray(loading, bool)
+    if force.shape != (d.size, 3) or loading.shape != d.shape:
+        raise ValueError(f"fit_curves: normalised_depth {d.shape}, force {force.shape}, loading "
+                         f"{loading.shape} must be (N,), (N,3), (N,)")
+    f = np.abs(force[:, 2])
+    return Curves(_fit_branch(d[loading], f[loading], "loading"),
+                  _fit_branch(d[~loading], f[~loading], "unloading"))
+
+
+def curves_from_calibration(calibration: Mapping) -> Curves:
+    """Curves of a calibrate[sensor] artifact (or a dict with the same arrays)."""
+    return fit_curves(np.asarray(calibration["normalised_depth"]), np.asarray(calibration["force"]),
+                      np.asarray(calibration["loading"]))
+
+
+def loading_mask(phase) -> np.ndarray:
+    """True for frames on the loading curve (press and shear phases), False for release."""
+    phase = np.asarray(phase)
+    bad = ~np.isin(phase, PHASES)
+    if bad.any():
+        raise ValueError(f"loading_mask: phase values {np.unique(phase[bad]).tolist()} are not in {PHASES}")
+    return ~np.isin(phase, UNLOADING_PHASES)
+
+
+def label_scale(normalised_depth, loading, source: Curves, target: Curves, eps: float = 1e-6) -> np.ndarray:
+    """r(d) = P_target(d) / P_source(d) per frame, in the divided (slope) form; see the module."""
+    d = np.maximum(np.asarray(normalised_depth, float), 0.0)
+    loading = np.asarray(loading, bool)
+    if d.shape != loading.shape:
+        raise ValueError(f"label_scale: normalised_depth {d.shape} and loading {loading.shape} differ")
+
+    def slope(c: Curves):
+        (al, bl, _), (au, bu, _) = c.loading, c.unloading
+        return np.maximum(np.where(loading, al * d + bl, au * d + bu), eps)
+
+    return slope(target) / slope(source)
+
+
+def compensate(force, normalised_depth, loading, source: Curves, target: Curves,
+               eps: float = 1e-6) -> np.ndarray:
+    """Source labels rescaled to the target's material: force (N,3) * r(d) per frame.
+
+    Identical source and target curves return the labels unchanged (bit for bit).
+    """
+    force = np.asarray(force)
+    if force.ndim != 2 or force.shape[1] != 3:
+        raise ValueError(f"compensate: force must be (N,3), got {force.shape}")
+    if source == target:
+        return force.copy()
+    scale = label_scale(normalised_depth, loading, source, target, eps)
+    if scale.shape != force.shape[:1]:
+        raise ValueError(f"compensate: {force.shape[0]} forces but {scale.shape[0]} depths")
+    return (force * scale[:, None]).astype(force.dtype)
+
+
+def curves_figure(calibrations: Mapping[str, tuple[Mapping, Curves]], title: str):
+    """PNG bytes: calibration points and fitted curves, loading solid and unloading dashed,
+    for each named sensor: name -> (calibration arrays, Curves)."""
+    from matplotlib.figure import Figure
+
+    from stages.figures import figure_png
+    fig = Figure(figsize=(4.8, 3.6))
+    ax = fig.add_subplot()
+    grid = np.linspace(0.0, 1.0, 50)
+    for k, (name, (cal, curves)) in enumerate(calibrations.items()):
+        colour = f"C{k}"
+        d, f = np.asarray(cal["normalised_depth"]), np.abs(np.asarray(cal["force"])[:, 2])
+        load = np.asarray(cal["loading"], bool)
+        ax.plot(d[load], f[load], ".", color=colour, ms=3, alpha=0.6)
+        ax.plot(d[~load], f[~load], "x", color=colour, ms=3, alpha=0.6)
+        ax.plot(grid, np.polyval(curves.loading, grid), "-", color=colour, label=f"{name} loading")
+        ax.plot(grid, np.polyval(curves.unloading, grid), "--", color=colour, label=f"{name} unloading")
+    ax.set(xlabel="normalised depth", ylabel="|Fz| (N)", title=title)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    return figure_png(fig)

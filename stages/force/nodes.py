@@ -1,0 +1,358 @@
+"""Node functions of the force regressor: own[skin], transfer[source,target] and the force
+studies (homo, material, hetero).
+
+Inputs are contact-sequence artifacts (or plain dicts of arrays): `images` (N,H,W) uint8,
+`reference` (H,W), `force` (N,3), `normalised_depth`, `phase`, `contact_id`, `indenter_id`
+and `indenters` (the names indenter_id indexes).  A contact's frames are contiguous and in
+time order.  Contacts are split by indenter name: models train on `train_indenters`, studies
+score on `test_indenters`.
+
+`config` is the regressor's config (model.DEFAULT_CONFIG keys) plus the training keys of
+TRAIN_DEFAULTS.  Trained models are stored as arrays (model.to_arrays) under a group
+("weights" for own, "genforce" / "genforce_comp" for transfer) with attrs["config"];
+model.load_model / model.load_predictor rebuild them.
+"""
+from __future__ import annotations
+
+import json
+from typing import Mapping, Sequence
+
+import numpy as np
+
+TRAIN_DEFAULTS = {
+    "seq_len": 32,                # longest training window (frames)
+    "finetune_lr_factor": 0.1,    # fine-tune stage learning rate = lr * factor
+}
+METHODS = ("source_only", "genforce", "genforce_comp", "oracle")
+_COLOURS = {"source_only": "C3", "genforce": "C0", "genforce_comp": "C2", "oracle": "0.45"}
+
+
+# ---------------------------------------------------------------------------- artifacts
+
+def _attrs(art) -> dict:
+    attrs = getattr(art, "attrs", None)
+    if attrs is None and isinstance(art, Mapping):
+        attrs = art.get("attrs", {})
+    return dict(attrs or {})
+
+
+def _json(value):
+    return json.loads(value) if isinstance(value, str) else value
+
+
+def _split_config(config: Mapping | None) -> tuple[dict, dict]:
+    """User config -> (model config, training options)."""
+    config = dict(config or {})
+    train = {k: config.pop(k, v) for k, v in TRAIN_DEFAULTS.items()}
+    from stages.force.model import model_config
+    return model_config(config), train
+
+
+def indenter_names(art) -> np.ndarray:
+    """The indenter name of every frame."""
+    names = np.asarray(art["indenters"]).astype(str)
+    return names[np.asarray(art["indenter_id"]).astype(int)]
+
+
+def contact_runs(art, indenters: Sequence[str] | None = None) -> list[tuple[int, int]]:
+    """(start, stop) frame ranges of the contacts pressed by `indenters` (None: all)."""
+    cid = np.asarray(art["contact_id"])
+    starts = np.flatnonzero(np.r_[True, cid[1:] != cid[:-1]]) if cid.size else np.zeros(0, int)
+    if len(np.unique(cid)) != starts.size:
+        raise ValueError("contact_runs: a contact's frames are not contiguous")
+    stops = np.r_[starts[1:], cid.size].astype(int)
+    runs = list(zip(starts.tolist(), stops.tolist()))
+    if indenters is None:
+        return runs
+    known = set(np.asarray(art["indenters"]).astype(str))
+    unknown = sorted(set(indenters) - known)
+    if unknown:
+        raise KeyError(f"indenter(s) {unknown} are not in the artifact's indenters {sorted(known)}")
+    names = indenter_names(art)
+    keep = set(indenters)
+    return [(a, b) for a, b in runs if names[a] in keep]
+
+
+def _read_runs(art, key: str, runs) -> list[np.ndarray]:
+    return [np.asarray(art[key][a:b]) for a, b in runs]
+
+
+# ---------------------------------------------------------------------------- training nodes
+
+def fit_own(*, markers: Mapping, skin: str, train_indenters: Sequence[str], config: Mapping,
+            steps: int, batch_size: int, lr: float, seed: int) -> dict:
+    """Node `own[skin]`: the regressor on the skin's own images and labels.
+
+    Trained on the contacts of `train_indenters` (source-only model when the skin is a source,
+    the oracle when it is a target).  Returns weights/..., attrs {config, skin,
+    train_indenters, history} and figures/loss.
+    """
+    from stages.force.model import to_arrays
+    from stages.force.train import fit, loss_figure, make_sequences
+    model_cfg, train = _split_config(config)
+    runs = contact_runs(markers, train_indenters)
+    if not runs:
+        raise ValueError(f"fit_own[{skin}]: no contacts of train_indenters {list(train_indenters)}")
+    reference = np.asarray(markers["reference"])
+    force = np.asarray(markers["force"], np.float32)
+    seqs = make_sequences(_read_runs(markers, "images", runs), [force[a:b] for a, b in runs],
+                          reference, model_cfg)
+    model, history = fit(seqs, model_cfg, steps=int(steps), batch_size=int(batch_size), lr=float(lr),
+                         seed=int(seed), seq_len=int(train["seq_len"]), desc=f"own[{skin}]")
+    model.set_reference(reference)
+    return {"weights": to_arrays(model),
+            "attrs": {"config": model.config, "train": train, "skin": skin,
+                      "train_indenters": list(train_indenters), "history": history},
+            "figures": {"loss": loss_figure({skin: history}, f"own[{skin}]")}}
+
+
+def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_calibration: Mapping,
+                 source: str, target: str, config: Mapping, steps: int, batch_size: int, lr: float,
+                 seed: int, finetune_steps: int, train_indenters: Sequence[str] | None = None,
+                 source_spec: Mapping | None = None, target_spec: Mapping | None = None) -> dict:
+    """Node `transfer[source,target]`: regressors on the source's sequences translated into the
+    target's style (images; reference = the target's), trained with the source's labels
+    (genforce) and with the labels compensated to the target's material (genforce_comp).
+
+    Both follow the same two-stage schedule from the same seed and differ only in their labels:
+    stage 1 trains `steps` steps at `lr` on all translated training contacts (contacts of
+    `train_indenters`; None: all of them); stage 2 fine-tunes stage 1's weights for
+    `finetune_steps` at lr * finetune_lr_factor on the same contacts and labels (the paper's
+    lr 0.1 then 1e-3; 0 skips it).  When the two calibrations give the same curves (same
+    material) the compensation is the identity and genforce_comp is genforce's weights, not
+    retrained (attrs compensation_identity true).
+    """
+    from stages.force.compensation import (compensate, curves_figure, curves_from_calibration,
+                                           label_scale, loading_mask)
+    from stages.force.model import to_arrays
+    from stages.force.train import ContactSequence, fit_two_stage, loss_figure, make_sequences
+    model_cfg, train = _split_config(config)
+    src_curves = curves_from_calibration(source_calibration)
+    tgt_curves = curves_from_calibration(target_calibration)
+    identity = src_curves == tgt_curves
+    runs = contact_runs(translated, train_indenters)
+    if not runs:
+        raise ValueError(f"fit_transfer[{source}->{target}]: no translated contacts to train on")
+    reference = np.asarray(translated["reference"])
+    force = np.asarray(translated["force"], np.float32)
+    depth = np.asarray(translated["normalised_depth"], float)
+    loading = loading_mask(np.asarray(translated["phase"]))
+    comp = compensate(force, depth, loading, src_curves, tgt_curves)
+    seqs = make_sequences(_read_runs(translated, "images", runs), [force[a:b] for a, b in runs],
+                          reference, model_cfg)
+    kwargs = dict(steps=int(steps), finetune_steps=int(finetune_steps), batch_size=int(batch_size),
+                  lr=float(lr), seed=int(seed), seq_len=int(train["seq_len"]),
+                  finetune_lr_factor=float(train["finetune_lr_factor"]))
+    name = f"transfer[{source}->{target}]"
+    genforce, hist = fit_two_stage(seqs, model_cfg, desc=f"{name} genforce", **kwargs)
+    genforce.set_reference(reference)
+    weights = to_arrays(genforce)
+    histories = {"genforce": hist}
+    if identity:
+        weights_comp = {k: v.copy() for k, v in weights.items()}
+    else:
+        comp_seqs = [ContactSequence(s.inputs, comp[a:b]) for s, (a, b) in zip(seqs, runs)]
+        genforce_comp, histories["genforce_comp"] = fit_two_stage(
+            comp_seqs, model_cfg, desc=f"{name} genforce_comp", **kwargs)
+        genforce_comp.set_reference(reference)
+        weights_comp = to_arrays(genforce_comp)
+    rows = np.concatenate([np.arange(a, b) for a, b in runs])
+    scale = (np.ones(rows.size) if identity else
+             label_scale(depth[rows], loading[rows], src_curves, tgt_curves))
+    figures = {"loss": loss_figure(histories, name),
+               "compensation": curves_figure({source: (source_calibration, src_curves),
+                                              target: (target_calibration, tgt_curves)},
+                                             f"compensation {source} -> {target}")}
+    return {"genforce": weights, "genforce_comp": weights_comp,
+            "attrs": {"config": genforce.config, "train": train, "source": source, "target": target,
+                      "compensation_identity": bool(identity),
+                      "curves": {"source": src_curves.as_dict(), "target": tgt_curves.as_dict()},
+                      "label_scale": {"mean": float(scale.mean()), "min": float(scale.min()),
+                                      "max": float(scale.max())},
+                      "train_indenters": None if train_indenters is None else list(train_indenters),
+                      "history": histories},
+            "figures": figures}
+
+
+# ---------------------------------------------------------------------------- study node
+
+def _test_set(art, test_indenters):
+    runs = contact_runs(art, test_indenters)
+    if not runs:
+        raise ValueError(f"no test contacts of indenters {list(test_indenters)}")
+    rows = np.concatenate([np.arange(a, b) for a, b in runs])
+    return {"images": np.concatenate(_read_runs(art, "images", runs)),
+            "contact_id": np.asarray(art["contact_id"])[rows],
+            "force": np.asarray(art["force"], np.float32)[rows],
+            "reference": np.asarray(art["reference"])}
+
+
+def force_study(*, study: str, pairs: Sequence[Sequence[str]], own: Mapping[str, Mapping],
+                transfer: Mapping[str, Mapping], markers: Mapping[str, Mapping],
+                test_indenters: Sequence[str], trace_frames: int = 1000) -> dict:
+    """Node `homo` / `material` / `hetero` (force part): four methods per source -> target pair,
+    all scored on the target's test contacts (`test_indenters`) against the target's labels:
+
+      source_only    own[source] on the target's images
+      genforce       transfer[source=,target=] genforce model
+      genforce_comp  transfer[source=,target=] genforce_comp model (compensated labels)
+      oracle         own[target] (trained on the target's own labels)
+
+    Every model sees the target's images with the target's reference.  Metrics
+    `<study>/<source>_<target>/<method>/<metric>` and `<study>/mean/<method>/<metric>`;
+    arrays mae/<method> (pairs, 4: fx, fy, fz, total), r2/<method> (pairs, 3), pairs
+    ("source_target"), sources, targets, trace/*; figures radar (MAE), r2_hist, trace, violin.
+    """
+    from stages.force.train import torch_threads
+    with torch_threads():
+        return _force_study(study, pairs, own, transfer, markers, test_indenters, trace_frames)
+
+
+def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_frames) -> dict:
+    from stages.force.metrics import METRICS, force_metrics
+    from stages.force.model import load_model, predict_contacts
+    pairs = [(str(s), str(t)) for s, t in pairs]
+    if not pairs:
+        raise ValueError(f"force_study[{study}]: no pairs")
+    for s, t in pairs:
+        for name, table, key in (("own", own, s), ("own", own, t), ("markers", markers, t),
+                                 ("transfer", transfer, f"source={s},target={t}")):
+            if key not in table:
+                raise KeyError(f"force_study[{study}]: {name} has no {key!r} (pair {s} -> {t})")
+    tests, oracle_pred, metrics = {}, {}, {}
+    per_pair: list[dict] = []
+    for s, t in pairs:
+        if t not in tests:
+            tests[t] = _test_set(markers[t], test_indenters)
+        test = tests[t]
+
+        def predict(art, prefix):
+            return predict_contacts(load_model(art, prefix), test["images"], test["contact_id"],
+                                    test["reference"])
+
+        tr = transfer[f"source={s},target={t}"]
+        if t not in oracle_pred:
+            oracle_pred[t] = predict(own[t], "weights")
+        preds = {"source_only": predict(own[s], "weights"), "genforce": predict(tr, "genforce")}
+        identical = bool(_json(_attrs(tr).get("compensation_identity", False)))
+        preds["genforce_comp"] = preds["genforce"] if identical else predict(tr, "genforce_comp")
+        preds["oracle"] = oracle_pred[t]
+        scores = {m: force_metrics(preds[m], test["force"]) for m in METHODS}
+        for m in METHODS:
+            for k, v in scores[m].items():
+                metrics[f"{study}/{s}_{t}/{m}/{k}"] = v
+        per_pair.append({"source": s, "target": t, "scores": scores,
+                         "errors": {m: preds[m] - test["force"] for m in METHODS}, "preds": preds})
+    for m in METHODS:
+        for k in METRICS:
+            metrics[f"{study}/mean/{m}/{k}"] = float(np.mean([p["scores"][m][k] for p in per_pair]))
+
+    mae = {m: np.array([[p["scores"][m][k] for k in ("mae_fx", "mae_fy", "mae_fz", "mae_total")]
+                        for p in per_pair]) for m in METHODS}
+    r2 = {m: np.array([[p["scores"][m][k] for k in ("r2_fx", "r2_fy", "r2_fz")] for p in per_pair])
+          for m in METHODS}
+    labels = [f"{p['source']}_{p['target']}" for p in per_pair]
+    # representative pair: the median genforce_comp total MAE
+    rep = per_pair[int(np.argsort(mae["genforce_comp"][:, 3])[(len(per_pair) - 1) // 2])]
+    n = min(int(trace_frames), len(tests[rep["target"]]["force"]))
+    trace = {"true": tests[rep["target"]]["force"][:n],
+             **{m: rep["preds"][m][:n].astype(np.float32) for m in ("source_only", "genforce_comp")}}
+    figures = {"radar": _radar_png(mae, labels, study),
+               "r2_hist": _r2_hist_png(r2, study),
+               "trace": _trace_png(trace, f"{study}: {rep['source']} -> {rep['target']}"),
+               "violin": _violin_png(per_pair, study)}
+    return {"mae": mae, "r2": r2, "pairs": labels, "sources": [p["source"] for p in per_pair],
+            "targets": [p["target"] for p in per_pair], "trace": trace, "figures": figures,
+            "metrics": metrics,
+            "attrs": {"study": study, "test_indenters": list(test_indenters),
+                      "trace_pair": [rep["source"], rep["target"]],
+                      "test_frames": {t: int(len(v["force"])) for t, v in tests.items()}}}
+
+
+# ---------------------------------------------------------------------------- figures
+
+def _figure(**kw):
+    from matplotlib.figure import Figure
+    return Figure(**kw)
+
+
+def _png(fig):
+    from stages.figures import figure_png
+    fig.tight_layout()
+    return figure_png(fig)
+
+
+def _radar_png(mae: Mapping[str, np.ndarray], labels: list[str], study: str):
+    """One panel per force component: a radar whose spokes are the pairs, one polygon per
+    method (grouped bars instead when there are fewer than 3 pairs: a radar needs 3 spokes)."""
+    fig = _figure(figsize=(11, 3.4))
+    radar = len(labels) >= 3
+    angles = np.linspace(0, 2 * np.pi, len(labels), endpoint=False)
+    closed = np.r_[angles, angles[:1]]
+    width = 0.8 / len(mae)
+    for k, comp in enumerate(("Fx", "Fy", "Fz", "Ft (mean)")):
+        ax = fig.add_subplot(1, 4, k + 1, projection="polar" if radar else None)
+        for j, (m, values) in enumerate(mae.items()):
+            v = values[:, k]
+            if radar:
+                ax.plot(closed, np.r_[v, v[:1]], color=_COLOURS[m], lw=1.2, label=m)
+                ax.fill(closed, np.r_[v, v[:1]], color=_COLOURS[m], alpha=0.08)
+            else:
+                ax.bar(np.arange(len(labels)) + (j - (len(mae) - 1) / 2) * width, v, width,
+                       color=_COLOURS[m], label=m)
+        ax.set_xticks(angles if radar else np.arange(len(labels)))
+        ax.set_xticklabels(labels, fontsize=5 if radar else 7)
+        ax.tick_params(axis="y", labelsize=6)
+        ax.set_title(f"MAE {comp} (N)", fontsize=9)
+    fig.suptitle(study, fontsize=9)
+    fig.tight_layout(rect=(0, 0, 1, 0.93))
+    fig.legend(*fig.axes[0].get_legend_handles_labels(), loc="upper left", ncol=4, fontsize=7,
+               frameon=False)
+    from stages.figures import figure_png
+    return figure_png(fig)
+
+
+def _r2_hist_png(r2: Mapping[str, np.ndarray], study: str):
+    """R2 over pairs and axes, source-only vs GenForce + compensation (R2 < -1 drawn at -1)."""
+    fig = _figure(figsize=(4.5, 3.2))
+    ax = fig.add_subplot()
+    bins = np.linspace(-1.0, 1.0, 21)
+    for m in ("source_only", "genforce_comp"):
+        ax.hist(np.clip(r2[m].ravel(), -1.0, 1.0), bins=bins, color=_COLOURS[m], alpha=0.55, label=m)
+    ax.set(xlabel="R$^2$ (all pairs and axes; below -1 at -1)", ylabel="count", title=study)
+    ax.legend(fontsize=8)
+    return _png(fig)
+
+
+def _trace_png(trace: Mapping[str, np.ndarray], title: str):
+    fig = _figure(figsize=(8, 5.5))
+    for k, comp in enumerate(("Fx", "Fy", "Fz")):
+        ax = fig.add_subplot(3, 1, k + 1)
+        ax.plot(trace["true"][:, k], color="k", lw=1.2, label="true")
+        for m in ("source_only", "genforce_comp"):
+            ax.plot(trace[m][:, k], color=_COLOURS[m], lw=0.9, label=m)
+        ax.set_ylabel(f"{comp} (N)")
+        if k == 0:
+            ax.set_title(title, fontsize=9)
+            ax.legend(fontsize=7, ncol=3)
+    fig.axes[-1].set_xlabel("test frame")
+    return _png(fig)
+
+
+def _violin_png(per_pair: list[dict], study: str):
+    """Prediction error per method and axis, pooled over pairs."""
+    fig = _figure(figsize=(9, 3.2))
+    for k, comp in enumerate(("Fx", "Fy", "Fz")):
+        ax = fig.add_subplot(1, 3, k + 1)
+        data = [np.concatenate([p["errors"][m][:, k] for p in per_pair]) for m in METHODS]
+        parts = ax.violinplot(data, showmedians=True, showextrema=False)
+        for body, m in zip(parts["bodies"], METHODS):
+            body.set_facecolor(_COLOURS[m])
+            body.set_alpha(0.6)
+        parts["cmedians"].set_color("k")
+        ax.axhline(0.0, color="0.5", lw=0.6)
+        ax.set_xticks(np.arange(1, len(METHODS) + 1))
+        ax.set_xticklabels(METHODS, rotation=30, fontsize=7)
+        ax.set_ylabel(f"{comp} error (N)")
+    fig.suptitle(f"{study}: prediction error", fontsize=9)
+    return _png(fig)

@@ -1,0 +1,190 @@
+"""Training the force regressor on contact sequences (the paper's recipe, CPU-sized).
+
+A sample is one contact sequence.  Each step draws ``batch_size`` contacts, crops a random
+window of each (half of the windows start at the contact's first frame, where the GRU state
+starts from rest in deployment; the rest start anywhere) with a random length up to
+``seq_len``, pads the shorter windows with their last frame (image and label: a hold) and
+minimises the L1 loss on min-max normalised forces with SGD (momentum 0.9, weight decay
+5e-4), a linear warm-up and a cosine decay of the learning rate; the gradient norm is clipped
+at 1, which keeps lr 0.1 (the paper's) stable with batches of a few contacts.
+
+Speed (benchmarks/force.py, default config, 64x64 input, one torch thread of a 2-core CPU):
+about 40 samples/s (contact windows, ~1250 frames/s); a 200-step default fit (batch 4,
+windows up to 24 frames) takes 10-20 s.
+
+Two-stage schedules (pretrain, then fine-tune) are two :func:`fit` calls, the second with
+``init=`` the first's weights and a smaller ``lr``.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import time
+from dataclasses import dataclass
+from typing import Mapping, Sequence
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from stages.force.model import ForceRegressor, from_arrays, model_config, prepare, to_arrays
+
+
+@dataclass
+class ContactSequence:
+    """One training sample: prepared inputs (T,C,S,S) and forces (T,3) N."""
+    inputs: torch.Tensor
+    force: np.ndarray
+
+
+def make_sequences(images_per_contact: Sequence, forces_per_contact: Sequence, reference,
+                   config: Mapping) -> list[ContactSequence]:
+    """Prepare (resize, subtract/stack the reference) every contact's images once."""
+    config = model_config(config)
+    out = []
+    for images, force in zip(images_per_contact, forces_per_contact):
+        force = np.asarray(force, np.float32)
+        if len(images) != len(force) or force.shape[1:] != (3,):
+            raise ValueError(f"a contact has {len(images)} images but forces of shape {force.shape}")
+        out.append(ContactSequence(prepare(images, reference, config), force))
+    return out
+
+
+def default_threads() -> int:
+    """Torch threads for force training and prediction: $GENFORCE_TORCH_THREADS, else 1.
+
+    One thread is the default because the pipeline shares 2 cores between nodes: measured by
+    benchmarks/force.py while other processes were busy, a second thread made training 10x
+    slower (busy-waiting OpenMP threads), and on an idle machine it gains at most ~1.5x."""
+    env = os.environ.get("GENFORCE_TORCH_THREADS", "").strip()
+    return max(1, int(env)) if env else 1
+
+
+@contextlib.contextmanager
+def torch_threads(n: int | None = None):
+    """Run torch on `n` threads (default: :func:`default_threads`), restoring the setting afterwards."""
+    old = torch.get_num_threads()
+    torch.set_num_threads(max(1, int(n or default_threads())))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
+
+
+def _window(rng: np.random.Generator, length: int, seq_len: int) -> tuple[int, int]:
+    """A random crop (start, stop) of a contact of `length` frames."""
+    hi = min(length, seq_len)
+    n = int(rng.integers(max(1, hi // 2), hi + 1))
+    start = 0 if rng.random() < 0.5 else int(rng.integers(0, length - n + 1))
+    return start, start + n
+
+
+def _batch(rng, seqs: list[ContactSequence], targets: list[torch.Tensor], batch_size: int, seq_len: int):
+    picks = rng.integers(0, len(seqs), batch_size)
+    crops = [(int(i),) + _window(rng, len(seqs[i].force), seq_len) for i in picks]
+    length = max(b - a for _, a, b in crops)
+    xs, ys = [], []
+    for i, a, b in crops:
+        pad = length - (b - a)
+        x, y = seqs[i].inputs[a:b], targets[i][a:b]
+        if pad:
+            x = torch.cat([x, x[-1:].expand((pad,) + tuple(x.shape[1:]))])
+            y = torch.cat([y, y[-1:].expand(pad, 3)])
+        xs.append(x)
+        ys.append(y)
+    return torch.stack(xs), torch.stack(ys)
+
+
+def _lr_at(step: int, steps: int, lr: float) -> float:
+    warm = max(1, steps // 20)
+    if step < warm:
+        return lr * (step + 1) / warm
+    return lr * 0.5 * (1.0 + np.cos(np.pi * (step - warm) / max(1, steps - warm)))
+
+
+def fit(sequences: list[ContactSequence], config: Mapping | None = None, *, steps: int,
+        batch_size: int, lr: float, seed: int = 0, seq_len: int = 32, init: Mapping | None = None,
+        momentum: float = 0.9, weight_decay: float = 5e-4, threads: int | None = None,
+        desc: str = "force fit") -> tuple[ForceRegressor, dict]:
+    """Train a regressor; returns (model in eval mode, history).
+
+    ``init`` is a :func:`to_arrays` dict to start from (fine-tuning); its config must equal
+    ``config``.  history: loss (per step, normalised L1), seconds, samples_per_s (contact
+    windows), frames_per_s, clipped_fraction (labels outside the force range).
+    """
+    if not sequences:
+        raise ValueError("fit: no training contact sequences")
+    if steps < 0 or batch_size < 1 or seq_len < 1:
+        raise ValueError(f"fit: steps {steps}, batch_size {batch_size}, seq_len {seq_len} out of range")
+    config = model_config(config)
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    model = from_arrays(init, config) if init is not None else ForceRegressor(config)
+    all_force = np.concatenate([s.force for s in sequences])
+    lo, hi = np.asarray(config["force_min"]), np.asarray(config["force_max"])
+    clipped = float(np.mean(np.any((all_force < lo) | (all_force > hi), axis=1)))
+    targets = [model.normalise(s.force) for s in sequences]
+    opt = torch.optim.SGD(model.parameters(), lr=lr, momentum=momentum, weight_decay=weight_decay)
+    losses, frames = [], 0
+    t0 = time.perf_counter()
+    with torch_threads(threads):
+        model.train()
+        for step in tqdm(range(steps), desc=desc, disable=None, leave=False):
+            for group in opt.param_groups:
+                group["lr"] = _lr_at(step, steps, lr)
+            x, y = _batch(rng, sequences, targets, batch_size, seq_len)
+            pred, _ = model(x)
+            loss = torch.nn.functional.l1_loss(pred, y)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+            opt.step()
+            losses.append(loss.item())
+            frames += x.shape[0] * x.shape[1]
+    seconds = time.perf_counter() - t0
+    model.eval()
+    history = {"loss": losses, "seconds": seconds, "steps": int(steps),
+               "samples_per_s": steps * batch_size / seconds if seconds > 0 else 0.0,
+               "frames_per_s": frames / seconds if seconds > 0 else 0.0,
+               "clipped_fraction": clipped, "contacts": len(sequences),
+               "frames": int(all_force.shape[0])}
+    return model, history
+
+
+def fit_two_stage(sequences: list[ContactSequence], config: Mapping | None = None, *, steps: int,
+                  finetune_steps: int, batch_size: int, lr: float, seed: int = 0,
+                  seq_len: int = 32, finetune_lr_factor: float = 0.1, init: Mapping | None = None,
+                  desc: str = "force fit") -> tuple[ForceRegressor, dict]:
+    """Pretrain (`steps` at `lr`), then fine-tune the result (`finetune_steps` at
+    `lr * finetune_lr_factor`) on the same sequences: the paper's two stages (0.1, then 1e-3)."""
+    model, hist = fit(sequences, config, steps=steps, batch_size=batch_size, lr=lr, seed=seed,
+                      seq_len=seq_len, init=init, desc=f"{desc} (pretrain)")
+    history = {"pretrain": hist}
+    if finetune_steps > 0:
+        model, hist2 = fit(sequences, model.config, steps=finetune_steps, batch_size=batch_size,
+                           lr=lr * finetune_lr_factor, seed=seed + 1, seq_len=seq_len,
+                           init=to_arrays(model), desc=f"{desc} (fine-tune)")
+        history["finetune"] = hist2
+    return model, history
+
+
+def loss_figure(histories: Mapping[str, Mapping], title: str):
+    """PNG bytes: training loss per step for each named history (two-stage runs joined)."""
+    from matplotlib.figure import Figure
+
+    from stages.figures import figure_png
+    fig = Figure(figsize=(5, 3.2))
+    ax = fig.add_subplot()
+    for name, hist in histories.items():
+        stages = [hist[k] for k in ("pretrain", "finetune") if k in hist] or [hist]
+        loss = np.concatenate([np.asarray(s["loss"], float) for s in stages])
+        if loss.size:
+            k = max(1, loss.size // 50)
+            smooth = np.convolve(loss, np.ones(k) / k, mode="valid")
+            ax.plot(np.arange(smooth.size) + k - 1, smooth, label=name)
+        if len(stages) == 2:
+            ax.axvline(len(stages[0]["loss"]) - 0.5, color="0.6", lw=0.8, ls=":")
+    ax.set(xlabel="step", ylabel="L1 (normalised force)", title=title, yscale="log")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return figure_png(fig)

@@ -1,0 +1,292 @@
+"""Node functions of the M2M part of the pipeline.
+
+  m2m_sim            pretrain          the generator, trained from scratch on the sim patterns
+  m2m                finetune          the same weights fine-tuned on a few pairs of the twins
+  translate[...]     translate_sequence  a source sequence in the target's marker style
+  flow_warp[...]     flow_warp_sequence  the training-free baseline, same outputs
+  features[skin]     image_features    InceptionV3 features of a skin's evaluation frames
+  sim_m2m, ...       image_study       FID/KID before / m2m / flow_warp per pair, figures
+
+Every image-scoring node selects its frames with data.eval_frame_indices, so a skin's own
+features and the translations into it describe the same contact frames.
+"""
+from __future__ import annotations
+
+import time
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from stages.figures import contact_sheet, figure_png, png
+from stages.m2m.data import (LABEL_KEYS, attrs_of, eval_frame_indices, paired_table, read_rows)
+
+CHUNK = 64              # frames per streamed chunk
+N_EXAMPLES = 4          # rows of the examples figure
+TSNE_PER_SET = 12       # points per image set in the t-SNE figure
+
+
+# ------------------------------------------------------------------------- training
+
+def _paired_arrays(markers: Mapping, skins: Sequence[str], rows: np.ndarray, size) -> tuple[np.ndarray, np.ndarray]:
+    """Images (S,K,h,w) at the rows of the paired table and references (S,h,w), at `size`."""
+    from stages.m2m.model import _resize
+    images = np.stack([_resize(read_rows(markers[s]["images"], r), size) for s, r in zip(skins, rows)])
+    refs = np.stack([_resize(np.asarray(markers[s]["reference"], np.uint8)[None], size)[0] for s in skins])
+    return images, refs
+
+
+def _loss_figure(loss: np.ndarray, title: str):
+    from matplotlib.figure import Figure
+    fig = Figure(figsize=(6, 3.5))
+    ax = fig.subplots()
+    ax.plot(loss, lw=0.5, alpha=0.4, color="C0")
+    k = max(1, len(loss) // 50)
+    if len(loss) >= k:
+        smooth = np.convolve(loss, np.ones(k) / k, mode="valid")
+        ax.plot(np.arange(len(smooth)) + k - 1, smooth, color="C0", label=f"mean of {k}")
+    ax.set_xlabel("step")
+    ax.set_ylabel("BCE + Dice loss")
+    ax.set_yscale("log")
+    ax.set_title(title)
+    ax.legend()
+    fig.tight_layout()
+    return fig
+
+
+def _samples_sheet(translator, images: np.ndarray, refs: np.ndarray, seed: int) -> np.ndarray:
+    """Rows of source | translated | target for random training pairs (one per row)."""
+    rng = np.random.default_rng(seed)
+    s, k = images.shape[:2]
+    tiles = []
+    for _ in range(N_EXAMPLES):
+        a, f = int(rng.integers(s)), int(rng.integers(k))
+        b = int((a + rng.integers(1, s)) % s) if s > 1 else a
+        out = translator.translate(images[a, f][None], refs[a], refs[b])[0]
+        tiles += [images[a, f], out, images[b, f]]
+    return contact_sheet(tiles, cols=3)
+
+
+def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_size, lr, seed, title):
+    from stages.m2m.model import Translator, state_arrays
+    from stages.m2m.train import PairBatches, fit
+    frames, rows = paired_table(markers, skins, train_indenters, per_skin)
+    images, refs = _paired_arrays(markers, skins, rows, config["size"])
+    hist = fit(net, config, PairBatches(images, refs, seed), steps=int(steps),
+               batch_size=int(batch_size), lr=float(lr), seed=int(seed), progress=title)
+    weights = state_arrays(net)
+    tail = hist["loss"][-max(1, len(hist["loss"]) // 20):]
+    return {
+        "weights": weights,
+        "loss": hist["loss"],
+        "figures": {"loss": figure_png(_loss_figure(hist["loss"], title)),
+                    "samples": png(_samples_sheet(Translator(config, weights), images, refs, seed))},
+        "attrs": {"config": config, "skins": list(skins), "train_indenters": list(train_indenters),
+                  "pairs": int(len(frames)), "steps": int(steps), "batch_size": int(batch_size),
+                  "lr": float(lr), "seed": int(seed), "seconds": round(hist["seconds"], 2),
+                  "steps_per_s": round(hist["steps_per_s"], 3),
+                  "final_loss": float(np.mean(tail)) if len(tail) else float("nan"),
+                  "parameters": int(sum(v.size for v in weights.values()))},
+    }
+
+
+def pretrain(*, markers: Mapping, skins: list[str], train_indenters: list[str], size, steps: int,
+             batch_size: int, lr: float, seed: int, width: int, timesteps: int) -> dict:
+    """Node m2m_sim: the generator trained from scratch on every ordered pair of `skins`
+    (location-paired frames of the training indenters).  Returns weights (name -> array),
+    the per-step loss, figures loss/samples and attrs (config to rebuild the model, ...)."""
+    import torch
+    from stages.m2m.model import build, default_config
+    config = default_config(size=size, width=width, timesteps=timesteps)
+    torch.manual_seed(int(seed))
+    net = build(config)
+    return _train(net, config, markers, skins, train_indenters, 0, steps, batch_size, lr, seed, "m2m pretrain")
+
+
+def finetune(*, base, markers: Mapping, skins: list[str], train_indenters: list[str],
+             pairs_per_skin: int, steps: int, batch_size: int, lr: float, seed: int) -> dict:
+    """Node m2m: `base` (a pretrained model) fine-tuned on `pairs_per_skin` location-paired
+    frames shared by `skins`, evenly spread over the training indenters' frames."""
+    from stages.m2m.model import build, weights_of
+    config = attrs_of(base)["config"]
+    net = build(config, weights_of(base))
+    out = _train(net, config, markers, skins, train_indenters, int(pairs_per_skin), steps, batch_size,
+                 lr, seed, "m2m finetune")
+    out["attrs"]["base_skins"] = list(attrs_of(base).get("skins", []))
+    out["attrs"]["pairs_per_skin"] = int(pairs_per_skin)
+    return out
+
+
+# ------------------------------------------------------------------------- translation
+
+def _examples_sheet(source, target, rows: np.ndarray, translated: np.ndarray) -> np.ndarray:
+    """source | translated | target at the same `frame` (target's reference if it lacks it)."""
+    t_frames = np.asarray(target["frame"])
+    t_ref = np.asarray(target["reference"], np.uint8)
+    pick = np.unique(np.linspace(0, len(rows) - 1, min(N_EXAMPLES, len(rows))).round().astype(int))
+    tiles = []
+    for p in pick:
+        frame = int(np.asarray(source["frame"][rows[p]:rows[p] + 1])[0])
+        hit = np.flatnonzero(t_frames == frame)
+        tgt = read_rows(target["images"], hit[:1])[0] if hit.size else t_ref
+        src = np.asarray(source["images"][rows[p]:rows[p] + 1])[0]
+        h, w = tgt.shape
+        tiles += [_fit(src, (h, w)), translated[p], tgt]
+    return contact_sheet(tiles, cols=3)
+
+
+def _fit(image: np.ndarray, shape) -> np.ndarray:
+    import cv2
+    return image if image.shape == tuple(shape) else cv2.resize(image, shape[::-1], interpolation=cv2.INTER_NEAREST)
+
+
+def _stream(source, target, eval_indenters, n_eval, convert, method: str):
+    """Stream `convert(images) -> images` over the source sequence with its labels; then
+    features of the evaluation frames, the examples figure and timing."""
+    from stages.imagemetrics import inception_features
+    from tqdm import tqdm
+    rows = eval_frame_indices(source, eval_indenters, n_eval)
+    labels = [k for k in LABEL_KEYS if k in source]
+    n = len(source["images"])
+    kept = np.zeros((len(rows), *np.asarray(target["reference"]).shape), np.uint8)
+    t0 = time.perf_counter()
+    for i in tqdm(range(0, n, CHUNK), desc=method, disable=None):
+        out = convert(np.asarray(source["images"][i:i + CHUNK]))
+        sel = (rows >= i) & (rows < i + len(out))
+        kept[sel] = out[rows[sel] - i]
+        yield {"images": out, **{k: np.asarray(source[k][i:i + CHUNK]) for k in labels}}
+    seconds = time.perf_counter() - t0
+    frames = np.asarray(source["frame"])[rows]
+    result = {
+        "reference": np.asarray(target["reference"], np.uint8),
+        "features": inception_features(kept, progress=f"{method} features"),
+        "eval_frames": frames.astype(np.int64),
+        "figures": {"examples": png(_examples_sheet(source, target, rows, kept))},
+        "attrs": {"method": method, "frames": int(n), "n_eval": int(len(rows)),
+                  "eval_indenters": list(eval_indenters), "seconds": round(seconds, 2),
+                  "images_per_s": round(n / max(seconds, 1e-9), 1)},
+    }
+    if "indenters" in source:
+        result["indenters"] = [str(v) for v in np.asarray(source["indenters"]).ravel()]
+    return result
+
+
+def translate_sequence(*, model, source_markers, target_markers, eval_indenters: list[str], n_eval: int,
+                       sampler_steps: int = 1, source: str = "", target: str = ""):
+    """Nodes translate_sim[source,target] / translate[source,target]: the source sequence
+    (source_markers, a marker artifact) translated into the target's marker style by the M2M
+    model (chunks: images + the source labels); returns the target's reference, `features`
+    and `eval_frames` of the evaluation frames, figures/examples and attrs.  source, target:
+    the skins' names (the fan-out's values)."""
+    from stages.m2m.model import load_translator
+    source, target = source_markers, target_markers
+    translator = load_translator(model)
+    src_ref = np.asarray(source["reference"], np.uint8)
+    tgt_ref = np.asarray(target["reference"], np.uint8)
+    result = yield from _stream(source, target, eval_indenters, n_eval,
+                                lambda im: translator.translate(im, src_ref, tgt_ref, int(sampler_steps)), "m2m")
+    result["attrs"]["sampler_steps"] = int(sampler_steps)
+    return result
+
+
+def flow_warp_sequence(*, source_markers, target_markers, eval_indenters: list[str], n_eval: int,
+                       source: str = "", target: str = ""):
+    """Node flow_warp[source,target]: the training-free baseline (stages.m2m.flow) with the
+    same outputs as translate_sequence."""
+    from stages.m2m.flow import MarkerFlow, warp
+    source, target = source_markers, target_markers
+    flow = MarkerFlow(np.asarray(source["reference"], np.uint8))
+    tgt_ref = np.asarray(target["reference"], np.uint8)
+    return (yield from _stream(source, target, eval_indenters, n_eval,
+                               lambda ims: np.stack([warp(tgt_ref, flow.field(im)) for im in ims]), "flow_warp"))
+
+
+def image_features(*, markers, eval_indenters: list[str], n_eval: int, skin: str = "") -> dict:
+    """Node features[skin]: InceptionV3 features (n,2048) of the skin's evaluation frames."""
+    from stages.imagemetrics import inception_features
+    rows = eval_frame_indices(markers, eval_indenters, n_eval)
+    return {"features": inception_features(read_rows(markers["images"], rows), progress="features"),
+            "eval_frames": np.asarray(markers["frame"])[rows].astype(np.int64),
+            "attrs": {"n_eval": int(len(rows)), "eval_indenters": list(eval_indenters)}}
+
+
+# ------------------------------------------------------------------------- study
+
+def pair_label(source: str, target: str) -> str:
+    """The gather label of a two-variable fan-out instance."""
+    return f"source={source},target={target}"
+
+
+def image_study(*, study: str, pairs: list, features: Mapping, translated: Mapping,
+                warped: Mapping | None = None, kid_subset: int = 100) -> dict:
+    """FID/KID of every (source, target) pair: `before` (source's own evaluation images vs
+    the target's), `m2m` (translated vs target) and `flow_warp` (warped vs target), their
+    means, (S,S) matrices fid/<method>, kid/<method> (NaN off the pairs), heatmaps and t-SNE."""
+    from stages.imagemetrics import fid, heatmaps_figure, kid
+    t0 = time.perf_counter()
+    pairs = [(str(s), str(t)) for s, t in pairs]
+    used = {n for p in pairs for n in p}
+    missing = sorted(used - set(features))
+    if missing:
+        raise KeyError(f"no features for skins {missing}")
+    names = [n for n in features if n in used]
+    index = {n: i for i, n in enumerate(names)}
+    feats = {n: np.asarray(features[n]["features"]) for n in names}
+    sources = {"m2m": translated or {}, "flow_warp": warped or {}}
+    methods = ["before"] + [m for m, arts in sources.items() if arts]
+    fids = {m: np.full((len(names),) * 2, np.nan) for m in methods}
+    kids = {m: np.full((len(names),) * 2, np.nan) for m in methods}
+    metrics, gen_feats = {}, {}
+    for s, t in pairs:
+        for m in methods:
+            if m == "before":
+                fake = feats[s]
+            else:
+                label = pair_label(s, t)
+                if label not in sources[m]:
+                    raise KeyError(f"{m}: no artifact for pair {label!r}")
+                fake = np.asarray(sources[m][label]["features"])
+                if m == "m2m":
+                    gen_feats[(s, t)] = fake
+            i, j = index[s], index[t]
+            fids[m][i, j] = fid(fake, feats[t])
+            kids[m][i, j] = kid(fake, feats[t], kid_subset)
+            metrics[f"{study}/{s}_{t}/{m}/fid"] = float(fids[m][i, j])
+            metrics[f"{study}/{s}_{t}/{m}/kid"] = float(kids[m][i, j])
+    for m in methods:
+        metrics[f"{study}/mean/{m}/fid"] = float(np.nanmean(fids[m]))
+        metrics[f"{study}/mean/{m}/kid"] = float(np.nanmean(kids[m]))
+    figures = {"fid": figure_png(heatmaps_figure(fids, names, "FID", log=True)),
+               "kid": figure_png(heatmaps_figure(kids, names, "KID"))}
+    if gen_feats:
+        figures["tsne"] = figure_png(_tsne_figure(names, feats, gen_feats))
+    drop = {m: metrics[f"{study}/mean/before/fid"] / max(metrics[f"{study}/mean/{m}/fid"], 1e-12)
+            for m in methods if m != "before"}
+    return {
+        "skins": names,
+        "fid": fids, "kid": kids,
+        "figures": figures,
+        "metrics": metrics,
+        "attrs": {"study": study, "pairs": len(pairs), "methods": methods, "kid_subset": int(kid_subset),
+                  "fid_drop": {m: round(v, 2) for m, v in drop.items()},
+                  "seconds": round(time.perf_counter() - t0, 2)},
+    }
+
+
+def _tsne_figure(names, feats: Mapping, gen_feats: Mapping):
+    """Joint t-SNE of a few images per skin and per translated pair (fixed seed)."""
+    from stages.imagemetrics import tsne, tsne_figure
+    from stages.m2m.data import evenly
+    blocks, groups, kinds = [], [], []
+    for n in names:
+        pick = evenly(np.arange(len(feats[n])), TSNE_PER_SET)
+        blocks.append(feats[n][pick])
+        groups += [n] * len(pick)
+        kinds += ["real"] * len(pick)
+    per_pair = max(2, TSNE_PER_SET // max(1, len(names) - 1))
+    for (s, t), f in gen_feats.items():
+        pick = evenly(np.arange(len(f)), per_pair)
+        blocks.append(f[pick])
+        groups += [t] * len(pick)
+        kinds += ["translated"] * len(pick)
+    points = tsne(np.concatenate(blocks), seed=0)
+    return tsne_figure(points, groups, kinds, names)

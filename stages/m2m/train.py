@@ -1,0 +1,120 @@
+"""Training the M2M generator on location-paired marker images.
+
+A training example is a paired frame f and two different skins a, b: the input is a's image
+at f with the references of a and b, the target is b's image at f.  All skins are held in
+memory as uint8 (S, K, H, W): at 128x128, 12 skins x 540 frames is 106 MB.  Every example is
+turned by one of the 8 square symmetries (4 when the images are not square), the same for all
+four images: the deformation-transfer it teaches is equivariant to them, and it multiplies the
+few pairs a fine-tune sees.
+
+Diffusion training: half of each batch is the one-step case (t = T-1, x_T = 0), the rest
+draws t uniformly below it with x_t the noised target, so the same weights serve the
+one-step generator and the multi-step sampler (model.sample).  The x0 loss
+replaces the paper's 5*MSE + LPIPS + 0.5*GAN: binary cross-entropy on the marker logits
+(the pixel term, exact for binary targets) plus a soft Dice term on marker probability (the
+shape term: it weighs the ~10% of marker pixels as much as the background, which LPIPS did
+for the paper's thin dots).  No adversarial term: outputs are thresholded to binary images,
+so the blur a GAN fights does not reach the artifacts.
+"""
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+import numpy as np
+import torch
+from torch.nn import functional as F
+
+from stages.m2m.model import M2MNet, alphas_cumprod
+
+ONESTEP_FRACTION = 0.5     # share of each batch trained at the one-step timestep T-1
+DICE_WEIGHT = 1.0
+WEIGHT_DECAY = 1e-4
+WARMUP = 0.03              # share of the steps with a linear learning-rate warm-up
+
+
+class PairBatches:
+    """Random (condition, target) batches from paired images (S,K,H,W) and references (S,H,W)."""
+
+    def __init__(self, images: np.ndarray, references: np.ndarray, seed: int):
+        if images.ndim != 4 or references.shape != (images.shape[0], *images.shape[2:]):
+            raise ValueError(f"images (S,K,H,W) and references (S,H,W) expected, got "
+                             f"{images.shape} and {references.shape}")
+        self.images, self.refs = images, references
+        self.rng = np.random.default_rng(seed)
+        self.square = images.shape[2] == images.shape[3]
+
+    def __call__(self, batch: int) -> tuple[torch.Tensor, torch.Tensor]:
+        s, k = self.images.shape[:2]
+        f = self.rng.integers(0, k, batch)
+        a = self.rng.integers(0, s, batch)
+        # b != a whenever there are two skins to choose from
+        b = (a + self.rng.integers(1, s, batch)) % s if s > 1 else a
+        stack = np.stack([self.images[a, f], self.refs[a], self.refs[b], self.images[b, f]], 1)
+        stack = np.stack([self._symmetry(x, int(g)) for x, g in
+                          zip(stack, self.rng.integers(0, 8 if self.square else 4, batch))])
+        x = torch.from_numpy(stack.astype(np.float32)) / 127.5 - 1.0
+        return x[:, :3], (x[:, 3:] > 0).float()
+
+    @staticmethod
+    def _symmetry(x: np.ndarray, g: int) -> np.ndarray:
+        """One of the dihedral group's elements on (C,H,W): flips by g's bits 0-1, transpose by bit 2."""
+        if g & 1:
+            x = x[:, ::-1]
+        if g & 2:
+            x = x[:, :, ::-1]
+        if g & 4:
+            x = x.transpose(0, 2, 1)
+        return np.ascontiguousarray(x)
+
+
+def loss_fn(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """BCE on logits + DICE_WEIGHT * (1 - soft Dice) of the marker probability."""
+    bce = F.binary_cross_entropy_with_logits(logits, target)
+    prob = torch.sigmoid(logits)
+    inter = (prob * target).sum((1, 2, 3))
+    dice = (2 * inter + 1) / (prob.sum((1, 2, 3)) + target.sum((1, 2, 3)) + 1)
+    return bce + DICE_WEIGHT * (1 - dice.mean())
+
+
+def noisy_input(target: torch.Tensor, config, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """(x_t, t) for a batch: one-step examples at T-1 with x_T = 0 (model.sample's first
+    step), the rest at a uniform t < T-1 with x_t = sqrt(abar) x0 + sqrt(1 - abar) noise."""
+    T = int(config["timesteps"])
+    b = target.shape[0]
+    t = torch.randint(0, max(T - 1, 1), (b,), generator=gen)
+    onestep = torch.rand(b, generator=gen) < ONESTEP_FRACTION
+    t[onestep] = T - 1
+    abar = alphas_cumprod(config)[t][:, None, None, None]
+    eps = torch.randn(target.shape, generator=gen)
+    x_t = abar.sqrt() * (2 * target - 1) + (1 - abar).sqrt() * eps
+    x_t[onestep] = 0.0
+    return x_t, t
+
+
+def fit(net: M2MNet, config, batches: Callable, *, steps: int, batch_size: int, lr: float,
+        seed: int, progress: str = "m2m") -> dict:
+    """AdamW with warm-up and cosine decay.  Returns {"loss": (steps,) float32, "seconds",
+    "steps_per_s"}."""
+    from tqdm import tqdm
+    torch.manual_seed(seed)
+    gen = torch.Generator().manual_seed(seed)
+    opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=WEIGHT_DECAY)
+    warm = max(1, int(WARMUP * steps))
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda i: min(1.0, (i + 1) / warm) * 0.5 * (1 + np.cos(np.pi * min(i, steps) / max(steps, 1))))
+    losses = np.zeros(steps, np.float32)
+    net.train()
+    t0 = time.perf_counter()
+    for i in tqdm(range(steps), desc=progress, disable=None):
+        cond, target = batches(batch_size)
+        x_t, t = noisy_input(target, config, gen)
+        loss = loss_fn(net(x_t, cond, t), target)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        sched.step()
+        losses[i] = loss.item()
+    seconds = time.perf_counter() - t0
+    net.eval()
+    return {"loss": losses, "seconds": seconds, "steps_per_s": steps / max(seconds, 1e-9)}

@@ -1,0 +1,53 @@
+"""The transfer studies (paper Figs. 4-6): image metrics and force metrics of one study in one
+artifact, so its tables, heatmaps, radar plots and traces sit side by side in the report.
+
+`transfer_study` (nodes `homo`, `material`, `hetero`) runs stages.m2m.nodes.image_study (FID/KID
+before / m2m / flow_warp) and stages.force.nodes.force_study (source_only / genforce /
+genforce_comp / oracle) over the study's (source, target) pairs.  `groups` names subsets of
+pairs (the material study's hard_to_soft and soft_to_hard, paper Fig. 5E-F) whose means are
+reported as `<study>/<group>/<method>/<metric>`, beside the all-pairs `<study>/mean/...`.
+"""
+from __future__ import annotations
+
+from typing import Mapping
+
+import numpy as np
+
+
+def group_means(metrics: Mapping[str, float], study: str, groups: Mapping[str, list]) -> dict:
+    """`<study>/<group>/<method>/<metric>`: the mean over a group's pairs of every
+    `<study>/<source>_<target>/<method>/<metric>` in metrics."""
+    out = {}
+    for group, pairs in groups.items():
+        labels = {f"{s}_{t}" for s, t in pairs}
+        values: dict[str, list[float]] = {}
+        for name, v in metrics.items():
+            parts = name.split("/")
+            if len(parts) == 4 and parts[0] == study and parts[1] in labels:
+                values.setdefault(f"{parts[2]}/{parts[3]}", []).append(float(v))
+        for key, vs in values.items():
+            out[f"{study}/{group}/{key}"] = float(np.mean(vs))
+    return out
+
+
+def transfer_study(*, study: str, groups: Mapping[str, list], features: Mapping, translated: Mapping,
+                   warped: Mapping, own: Mapping, transfer: Mapping, markers: Mapping,
+                   test_indenters: list, kid_subset: int, trace_frames: int) -> dict:
+    """One study over the pairs of all its groups (a pair in two groups is scored once)."""
+    from stages.force.nodes import force_study
+    from stages.m2m.nodes import image_study
+    pairs: list[list[str]] = []
+    for group in groups.values():
+        pairs += [[str(s), str(t)] for s, t in group if [str(s), str(t)] not in pairs]
+    images = image_study(study=study, pairs=pairs, features=features, translated=translated,
+                         warped=warped, kid_subset=kid_subset)
+    force = force_study(study=study, pairs=pairs, own=own, transfer=transfer, markers=markers,
+                        test_indenters=test_indenters, trace_frames=trace_frames)
+    metrics = {**images.pop("metrics"), **force.pop("metrics")}
+    if len(groups) > 1:
+        metrics.update(group_means(metrics, study, groups))
+    figures = {**{f"images_{k}": v for k, v in images.pop("figures").items()},
+               **{f"force_{k}": v for k, v in force.pop("figures").items()}}
+    attrs = {"images": images.pop("attrs"), "force": force.pop("attrs"),
+             "groups": {g: [f"{s}_{t}" for s, t in p] for g, p in groups.items()}}
+    return {"images": images, "force": force, "figures": figures, "metrics": metrics, "attrs": attrs}

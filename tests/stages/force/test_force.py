@@ -1,0 +1,270 @@
+"""The force regressor, material compensation, force metrics and the force nodes, on tiny
+synthetic contact sequences (see conftest.blob_contacts)."""
+import json
+
+import numpy as np
+import pytest
+import torch
+from sklearn.metrics import mean_absolute_error, r2_score
+
+from stages.force.compensation import (Curves, compensate, fit_curves, label_scale, loading_mask)
+from stages.force.metrics import METRICS, force_metrics
+from stages.force.model import (ForceRegressor, StreamingPredictor, from_arrays, load_model,
+                                load_predictor, model_config, predict_contacts, predict_sequence,
+                                to_arrays)
+from stages.force.nodes import METHODS, contact_runs, fit_own, fit_transfer, force_study
+from stages.force.train import fit, make_sequences
+
+from force_synthetic import contact_artifact
+
+PNG = b"\x89PNG\r\n\x1a\n"
+REF = np.zeros((32, 32), np.uint8)
+
+
+@pytest.fixture(scope="module")
+def trained(blobs, tiny_config):
+    """A tiny regressor fitted on 24 synthetic contacts; 8 more held out."""
+    images, forces = blobs(32, seed=1)
+    seqs = make_sequences(images[:24], forces[:24], REF, tiny_config)
+    model, history = fit(seqs, tiny_config, steps=300, batch_size=4, lr=0.1, seq_len=14, seed=0)
+    model.set_reference(REF)
+    return model, history, images[24:], forces[24:], forces[:24]
+
+
+# ---------------------------------------------------------------------------- regressor
+
+def test_tiny_regressor_learns_synthetic_sequences(trained):
+    model, history, images, forces, train_forces = trained
+    true = np.concatenate(forces)
+    pred = predict_contacts(model, np.concatenate(images), np.repeat(np.arange(8), 14))
+    mae = np.abs(pred - true).mean(0)
+    baseline = np.abs(true - np.concatenate(train_forces).mean(0)).mean(0)   # predict the mean
+    assert np.all(mae[:2] < 0.6 * baseline[:2]), (mae, baseline)
+    assert mae[2] < 0.3 * baseline[2] and mae[2] < 0.7, (mae, baseline)
+    assert np.mean(history["loss"][-30:]) < 0.5 * np.mean(history["loss"][:10])
+    assert history["frames_per_s"] > 0 and history["clipped_fraction"] == 0.0
+
+
+def test_streaming_matches_predict_sequence(trained):
+    model, _, images, _, _ = trained
+    seq = predict_sequence(model, images[0], REF)
+    stream = StreamingPredictor(model)                      # the reference stored with the model
+    steps = np.stack([stream.step(img) for img in images[0]])
+    np.testing.assert_allclose(steps, seq, atol=1e-5)
+    stream.reset()
+    np.testing.assert_allclose(stream.step(images[0][0]), seq[0], atol=1e-5)
+    assert seq.shape == (14, 3) and seq.dtype == np.float32
+
+
+def test_predict_contacts_resets_state_per_contact(trained):
+    model, _, images, _, _ = trained
+    both = predict_contacts(model, np.concatenate(images[:2]), np.repeat([5, 9], 14), REF, batch=1)
+    np.testing.assert_allclose(both[14:], predict_sequence(model, images[1], REF), atol=1e-5)
+    # without a reset the second contact would start from the first one's state
+    carried = predict_sequence(model, np.concatenate(images[:2]), REF)[14:]
+    assert np.abs(carried - both[14:]).max() > 1e-4
+
+
+def test_arrays_round_trip_exact(trained):
+    model, _, images, _, _ = trained
+    arrays = to_arrays(model)
+    again = from_arrays(arrays, model.config)
+    for k, v in to_arrays(again).items():
+        np.testing.assert_array_equal(v, arrays[k])
+    np.testing.assert_array_equal(predict_sequence(again, images[0]), predict_sequence(model, images[0]))
+    assert arrays["reference"].shape == (32, 32)
+    with pytest.raises(KeyError, match="missing"):
+        from_arrays({k: v for k, v in arrays.items() if k != "linear.bias"}, model.config)
+
+
+def test_config_validation_and_label_clipping():
+    with pytest.raises(KeyError, match="hiden"):
+        model_config({"hiden": 4})
+    with pytest.raises(ValueError, match="multiple of 16"):
+        model_config({"input_size": 40})
+    with pytest.raises(ValueError, match="input_mode"):
+        model_config({"input_mode": "sum"})
+    model = ForceRegressor({"input_mode": "stack"})
+    y = model.normalise(np.array([[-5.0, 0.0, -20.0], [9.0, 2.5, 10.0]])).numpy()
+    np.testing.assert_allclose(y, [[0.0, 0.5, 0.0], [1.0, 0.75, 1.0]])
+    np.testing.assert_allclose(model.denormalise(torch.tensor([0.5, 0.5, 0.8])).numpy(), [0, 0, 0], atol=1e-6)
+    assert model.encoder.stem[0].in_channels == 2
+
+
+# ---------------------------------------------------------------------------- compensation
+
+def _calibration(scale, unload=0.8, n=20):
+    """Force that is scale * (d^2 + 2 d) loading and unload x that unloading."""
+    d = np.r_[np.linspace(0, 1, n), np.linspace(1, 0, n)]
+    loading = np.r_[np.ones(n, bool), np.zeros(n, bool)]
+    fz = -scale * (d * d + 2 * d) * np.where(loading, 1.0, unload)
+    return d, np.c_[0.1 * fz, -0.05 * fz, fz], loading
+
+
+def test_fit_curves_recovers_polynomials():
+    curves = fit_curves(*_calibration(2.0))
+    np.testing.assert_allclose(curves.loading, [2.0, 4.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(curves.unloading, [1.6, 3.2, 0.0], atol=1e-9)
+    d, f, load = _calibration(2.0)
+    f[load] = 0.0                                   # no force while loading: no calibration
+    with pytest.raises(ValueError, match="loading curve is not positive"):
+        fit_curves(d, f, load)
+
+
+def test_identical_curves_are_the_identity_exactly():
+    rng = np.random.default_rng(0)
+    force = rng.normal(size=(50, 3)).astype(np.float32)
+    depth, loading = rng.uniform(0, 1, 50), rng.random(50) < 0.5
+    a, b = fit_curves(*_calibration(1.3)), fit_curves(*_calibration(1.3))   # fitted twice
+    out = compensate(force, depth, loading, a, b)
+    assert out.dtype == np.float32 and np.array_equal(out, force)
+    np.testing.assert_array_equal(label_scale(depth, loading, a, b), np.ones(50))
+
+
+def test_soft_to_hard_increases_and_hard_to_soft_decreases():
+    soft, hard = fit_curves(*_calibration(1.0)), fit_curves(*_calibration(3.0))
+    force = np.array([[0.5, -0.2, -4.0], [-1.0, 0.3, -8.0], [0.0, 0.0, -1.0]], np.float32)
+    depth, loading = np.array([0.3, 0.9, 0.05]), np.array([True, True, False])
+    up = compensate(force, depth, loading, soft, hard)
+    down = compensate(force, depth, loading, hard, soft)
+    np.testing.assert_allclose(up, 3.0 * force, rtol=1e-6)      # proportional curves: ratio 3
+    np.testing.assert_allclose(down, force / 3.0, rtol=1e-6)
+    assert np.all(np.abs(up[:, 2]) > np.abs(force[:, 2])) and np.all(np.abs(down[:, 2]) < np.abs(force[:, 2]))
+
+
+def test_loading_and_unloading_curves_by_phase():
+    source = Curves(loading=(0.0, 1.0, 0.0), unloading=(0.0, 0.5, 0.0))
+    target = Curves(loading=(1.0, 1.0, 0.0), unloading=(0.0, 2.0, 0.0))
+    phase = np.array([0, 1, 2, 3, 3, 0], np.int8)
+    depth = np.array([0.5, 1.0, 0.0, 0.5, 0.0, 2.0])
+    loading = loading_mask(phase)
+    assert loading.tolist() == [True, True, True, False, False, True]
+    # loading: (d + 1) / 1; unloading: 2 / 0.5 = 4 at every depth, also d = 0
+    np.testing.assert_allclose(label_scale(depth, loading, source, target), [1.5, 2.0, 1.0, 4.0, 4.0, 3.0])
+    force = np.tile([1.0, -1.0, -2.0], (6, 1))
+    np.testing.assert_allclose(compensate(force, depth, loading, source, target)[:, 2],
+                               [-3.0, -4.0, -2.0, -8.0, -8.0, -6.0])
+    with pytest.raises(ValueError, match=r"\[5\]"):
+        loading_mask([0, 5])
+
+
+# ---------------------------------------------------------------------------- metrics
+
+def test_metrics_match_sklearn_and_hand_values():
+    true = np.array([[0.0, 1.0, -1.0], [1.0, 1.0, -2.0], [2.0, 1.0, -3.0], [3.0, 1.0, -6.0]])
+    pred = np.array([[0.5, 1.0, -1.0], [1.0, 1.5, -2.0], [2.0, 1.0, -4.0], [2.5, 1.0, -6.0]])
+    m = force_metrics(pred, true)
+    assert list(m) == list(METRICS)
+    assert m["mae_fx"] == pytest.approx(0.25) and m["mae_fy"] == pytest.approx(0.125)
+    assert m["mae_fz"] == pytest.approx(0.25) and m["mae_total"] == pytest.approx(0.625 / 3)
+    assert m["r2_fx"] == pytest.approx(1 - 0.5 / 5.0)          # SSres 0.5, SStot 5
+    assert m["r2_fy"] == 0.0                                   # constant truth, imperfect
+    assert m["r2_fz"] == pytest.approx(1 - 1.0 / 14.0)         # mean -3: SStot 4+1+0+9
+    for k, axis in enumerate(("fx", "fy", "fz")):
+        assert m[f"mae_{axis}"] == pytest.approx(mean_absolute_error(true[:, k], pred[:, k]))
+        assert m[f"r2_{axis}"] == pytest.approx(r2_score(true[:, k], pred[:, k]))
+    with pytest.raises(ValueError, match=r"\(N,3\)"):
+        force_metrics(pred[:, :2], true[:, :2])
+
+
+# ---------------------------------------------------------------------------- nodes
+
+NAMES = ["sphere", "prism", "cone", "torus"]
+
+
+@pytest.fixture(scope="module")
+def skins(blobs):
+    """Two 'skins' sharing one synthetic physics; contact k pressed by NAMES[k % 4]."""
+    images, forces = blobs(12, seed=3)
+    a = contact_artifact(images, forces, [NAMES[k % 4] for k in range(12)])
+    b = dict(a, images=255 - a["images"], reference=np.full((32, 32), 255, np.uint8))
+    return {"A": a, "B": b}
+
+
+def _calibration_art(scale):
+    d, f, load = _calibration(scale)
+    return {"normalised_depth": d, "force": f, "loading": load}
+
+
+def test_contact_runs_split_by_indenter(skins):
+    runs = contact_runs(skins["A"], ["sphere", "cone"])
+    assert runs == [(k * 14, k * 14 + 14) for k in (0, 2, 4, 6, 8, 10)]
+    with pytest.raises(KeyError, match="tetrahedron"):
+        contact_runs(skins["A"], ["tetrahedron"])
+
+
+@pytest.fixture(scope="module")
+def nodes_out(skins, tiny_config):
+    kw = dict(config={**tiny_config, "seq_len": 10}, steps=4, batch_size=2, lr=0.05, seed=0)
+    train = ["sphere", "prism", "cone"]
+    own = {s: fit_own(markers=skins[s], skin=s, train_indenters=train, **kw) for s in ("A", "B")}
+    same = fit_transfer(translated=skins["B"], source_calibration=_calibration_art(1.0),
+                        target_calibration=_calibration_art(1.0), source="A", target="B",
+                        finetune_steps=2, train_indenters=train, **kw)
+    stiffer = fit_transfer(translated=skins["A"], source_calibration=_calibration_art(1.0),
+                           target_calibration=_calibration_art(2.0), source="B", target="A",
+                           finetune_steps=0, train_indenters=train, **kw)
+    return own, same, stiffer
+
+
+def test_fit_own_outputs(nodes_out, skins):
+    own, _, _ = nodes_out
+    out = own["A"]
+    assert out["attrs"]["config"]["input_size"] == 16 and out["attrs"]["train"]["seq_len"] == 10
+    assert out["attrs"]["history"]["contacts"] == 9 and len(out["attrs"]["history"]["loss"]) == 4
+    assert bytes(out["figures"]["loss"][:8]) == PNG
+    model = load_model(out)
+    assert np.array_equal(model.reference.numpy(), skins["A"]["reference"])
+    json.dumps(out["attrs"])                                     # attrs are JSON-able
+
+    class Stored(dict):
+        """What a store hands over: flat 'group/name' datasets, JSON attrs read back as text."""
+        attrs = {"config": json.dumps(out["attrs"]["config"])}
+
+    stored = Stored({f"weights/{k}": v for k, v in out["weights"].items()})
+    assert out["weights"]["encoder.stem.1.num_batches_tracked"].shape == (1,)   # no 0-d datasets
+    images = skins["A"]["images"][:14]
+    np.testing.assert_array_equal(predict_sequence(load_model(stored), images),
+                                  predict_sequence(model, images))
+    np.testing.assert_array_equal(load_predictor(stored).step(images[3]),
+                                  StreamingPredictor(model).step(images[3]))
+
+
+def test_fit_transfer_identity_copies_genforce(nodes_out):
+    _, same, stiffer = nodes_out
+    assert same["attrs"]["compensation_identity"] is True
+    assert set(same["genforce"]) == set(same["genforce_comp"])
+    for k, v in same["genforce"].items():
+        np.testing.assert_array_equal(v, same["genforce_comp"][k])
+    assert "genforce_comp" not in same["attrs"]["history"]
+    assert set(same["attrs"]["history"]["genforce"]) == {"pretrain", "finetune"}
+    assert stiffer["attrs"]["compensation_identity"] is False
+    assert stiffer["attrs"]["label_scale"]["min"] == pytest.approx(2.0)
+    assert any(not np.array_equal(v, stiffer["genforce_comp"][k]) for k, v in stiffer["genforce"].items())
+    assert bytes(stiffer["figures"]["compensation"][:8]) == PNG
+    json.dumps(stiffer["attrs"])
+
+
+def test_force_study_metrics_and_figures(nodes_out, skins):
+    own, same, stiffer = nodes_out
+    out = force_study(study="toy", pairs=[["A", "B"], ["B", "A"]], own=own,
+                      transfer={"source=A,target=B": same, "source=B,target=A": stiffer},
+                      markers=skins, test_indenters=["torus"], trace_frames=20)
+    m = out["metrics"]
+    assert len(m) == 2 * 4 * 7 + 4 * 7
+    rows = np.flatnonzero(np.isin(skins["A"]["contact_id"], [3, 7, 11]))     # the torus contacts
+    truth = skins["A"]["force"][rows]
+    oracle = predict_contacts(load_model(own["A"]), skins["A"]["images"][rows],
+                              skins["A"]["contact_id"][rows], skins["A"]["reference"])
+    assert m["toy/B_A/oracle/mae_fz"] == pytest.approx(force_metrics(oracle, truth)["mae_fz"])
+    assert m["toy/A_B/genforce_comp/r2_fx"] == m["toy/A_B/genforce/r2_fx"]   # identity: same model
+    assert m["toy/mean/source_only/mae_total"] == pytest.approx(
+        (m["toy/A_B/source_only/mae_total"] + m["toy/B_A/source_only/mae_total"]) / 2)
+    assert out["mae"]["oracle"].shape == (2, 4) and out["r2"]["genforce"].shape == (2, 3)
+    assert out["pairs"] == ["A_B", "B_A"] and out["trace"]["true"].shape == (20, 3)
+    assert set(out["mae"]) == set(METHODS)
+    for name in ("radar", "r2_hist", "trace", "violin"):
+        assert bytes(out["figures"][name][:8]) == PNG, name
+    with pytest.raises(KeyError, match="source=A,target=C"):
+        force_study(study="toy", pairs=[["A", "C"]], own={**own, "C": own["A"]}, transfer={},
+                    markers={**skins, "C": skins["A"]}, test_indenters=["torus"])

@@ -1,0 +1,97 @@
+"""The M2M network, samplers, weights as arrays and the Translator."""
+import numpy as np
+import pytest
+import torch
+
+from stages.m2m import load_translator
+from stages.m2m.model import (Translator, alphas_cumprod, build, default_config, sample, state_arrays,
+                              weights_of)
+from stages.m2m.train import PairBatches, loss_fn, noisy_input
+
+
+def _model(size=(32, 32), width=8, seed=0):
+    cfg = default_config(size=size, width=width, timesteps=50)
+    torch.manual_seed(seed)
+    net = build(cfg)
+    with torch.no_grad():                 # random, not-near-zero outputs
+        for p in net.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    return cfg, net
+
+
+def _images(n, size=32, seed=0):
+    rng = np.random.default_rng(seed)
+    return np.where(rng.random((n, size, size)) < 0.2, 255, 0).astype(np.uint8)
+
+
+def test_weights_round_trip_through_arrays_gives_identical_outputs():
+    cfg, net = _model()
+    weights = state_arrays(net)
+    assert all(isinstance(v, np.ndarray) and v.dtype == np.float32 for v in weights.values())
+    # as a node returns it, and as a store artifact presents it (flattened names + attrs)
+    nested = {"weights": weights, "attrs": {"config": cfg}}
+
+    class Stored(dict):
+        attrs = {"config": cfg}
+    flat = Stored({f"weights/{k}": v for k, v in weights.items()})
+    imgs, refs = _images(5), _images(2, seed=1)
+    direct = Translator(cfg, weights).probabilities(imgs, refs[0], refs[1])
+    for art in (nested, flat):
+        t = load_translator(art)
+        np.testing.assert_array_equal(t.probabilities(imgs, refs[0], refs[1]), direct)
+    assert 0.05 < (direct >= 0.5).mean() < 0.95          # the random net is not saturated
+    with pytest.raises(KeyError, match="do not fit"):
+        build(default_config(size=(32, 32), width=16), weights)
+    with pytest.raises(KeyError, match="config"):
+        load_translator({"weights": weights})
+    assert set(weights_of(flat)) == set(weights)
+
+
+def test_translation_is_binary_deterministic_and_batch_independent():
+    cfg, net = _model()
+    t = Translator(cfg, state_arrays(net))
+    imgs, refs = _images(6), _images(2, seed=1)
+    out = t.translate(imgs, refs[0], refs[1], batch=4)
+    assert out.shape == (6, 32, 32) and out.dtype == np.uint8 and set(np.unique(out)) <= {0, 255}
+    np.testing.assert_array_equal(t.translate(imgs[3:4], refs[0], refs[1]), out[3:4])
+    multi = t.translate(imgs, refs[0], refs[1], steps=4)
+    assert multi.shape == out.shape and not np.array_equal(multi, out)   # DDIM takes another path
+    with pytest.raises(ValueError, match="steps"):
+        t.translate(imgs, refs[0], refs[1], steps=0)
+
+
+def test_translator_resizes_to_the_model_and_back():
+    cfg, net = _model(size=(32, 32))
+    t = Translator(cfg, state_arrays(net))
+    imgs, refs = _images(2, size=64), _images(2, size=64, seed=1)
+    out = t.translate(imgs, refs[0], refs[1])
+    assert out.shape == (2, 64, 64) and set(np.unique(out)) <= {0, 255}
+
+
+def test_sampler_steps_visit_decreasing_timesteps():
+    cfg, net = _model()
+    seen = []
+    forward = net.forward
+    net.forward = lambda x, c, t: (seen.append(int(t[0])), forward(x, c, t))[1]
+    cond = torch.zeros(1, 3, 32, 32)
+    sample(net, cond, cfg, steps=1)
+    sample(net, cond, cfg, steps=3)
+    assert seen == [49, 49, 24, 0]
+    abar = alphas_cumprod(cfg)
+    assert abar.shape == (50,) and float(abar[0]) == pytest.approx(1 - 1e-4) and float(abar[-1]) < abar[0]
+
+
+def test_batches_apply_one_symmetry_to_all_channels_and_loss():
+    imgs = _images(8, size=16).reshape(2, 4, 16, 16)
+    imgs[1] = imgs[0]                          # skin 1 is skin 0, so target == input image
+    refs = _images(2, size=16, seed=3)
+    refs[1] = refs[0]
+    cond, target = PairBatches(imgs, refs, seed=0)(16)
+    assert cond.shape == (16, 3, 16, 16) and target.shape == (16, 1, 16, 16)
+    np.testing.assert_array_equal(cond[:, :1] > 0, target > 0.5)     # the same transform on every channel
+    np.testing.assert_array_equal(cond[:, 1], cond[:, 2])
+    logits_good = (2 * target - 1) * 20
+    assert float(loss_fn(logits_good, target)) < 0.01 < float(loss_fn(-logits_good, target))
+    cfg = default_config(size=(16, 16), width=8, timesteps=50)
+    x_t, t = noisy_input(target, cfg, torch.Generator().manual_seed(0))
+    assert x_t.shape == target.shape and (t == 49).float().mean() >= 0.4

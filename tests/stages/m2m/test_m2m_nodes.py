@@ -1,0 +1,114 @@
+"""Node functions: training, translation streams, features and the image study."""
+import numpy as np
+import pytest
+from conftest import SKINS, run_node
+
+from stages.imagemetrics import fid, kid
+from stages.m2m import nodes
+from stages.m2m.data import eval_frame_indices
+
+N_EVAL = 6
+PNG = bytes([0x89, 0x50, 0x4E, 0x47])
+
+
+@pytest.fixture(scope="module")
+def trained(skins):
+    """A width-8 generator trained from scratch for 400 steps on the 3 tiny skins (~15 s)."""
+    return nodes.pretrain(markers=skins, skins=list(SKINS), train_indenters=["sphere"], size=(64, 64),
+                          steps=400, batch_size=16, lr=3e-3, seed=0, width=8, timesteps=100)
+
+
+def _iou(a, b):
+    return ((a > 0) & (b > 0)).sum() / ((a > 0) | (b > 0)).sum()
+
+
+def test_pretrain_outputs(trained):
+    attrs = trained["attrs"]
+    assert attrs["config"]["size"] == [64, 64] and attrs["config"]["width"] == 8
+    assert attrs["pairs"] == 24 and attrs["steps"] == 400 and attrs["skins"] == list(SKINS)
+    loss = trained["loss"]
+    assert loss.shape == (400,) and attrs["final_loss"] < 0.5 * loss[:20].mean()
+    assert attrs["parameters"] == sum(v.size for v in trained["weights"].values())
+    for png in trained["figures"].values():
+        assert bytes(png[:4]) == PNG
+
+
+def test_trained_model_beats_before_on_held_out_frames(skins, trained):
+    """Held-out indenter, Array3 -> Diamond3: the translations score better FID and KID
+    against Diamond3's own images than Array3's images do, and they overlap the true
+    deformed Diamond3 images better than its undeformed reference does."""
+    src, tgt = skins["Array3"], skins["Diamond3"]
+    real = nodes.image_features(markers=tgt, eval_indenters=["wave"], n_eval=N_EVAL)
+    before = nodes.image_features(markers=src, eval_indenters=["wave"], n_eval=N_EVAL)
+    chunks, out = run_node(nodes.translate_sequence(model=trained, source_markers=src, target_markers=tgt,
+                                                    eval_indenters=["wave"], n_eval=N_EVAL))
+    np.testing.assert_array_equal(out["eval_frames"], real["eval_frames"])
+    fid_before, fid_m2m = fid(before["features"], real["features"]), fid(out["features"], real["features"])
+    kid_before, kid_m2m = kid(before["features"], real["features"]), kid(out["features"], real["features"])
+    assert fid_before > 100 and fid_m2m < 0.5 * fid_before
+    assert kid_m2m < 0.5 * kid_before
+    rows = eval_frame_indices(src, ["wave"], N_EVAL)
+    images = np.concatenate([c["images"] for c in chunks])
+    assert _iou(images[rows], tgt["images"][rows]) > _iou(tgt["reference"][None], tgt["images"][rows]) + 0.02
+
+
+def test_translation_streams_labels_and_matches_flow_warp_layout(skins, trained, monkeypatch):
+    monkeypatch.setattr(nodes, "CHUNK", 20)
+    monkeypatch.setattr("stages.imagemetrics.inception_features",
+                        lambda images, **kw: np.repeat(np.mean(images, axis=(1, 2))[:, None], 4, axis=1))
+    src, tgt = skins["Circle3"], skins["Array3"]
+    for gen in (nodes.translate_sequence(model=trained, source_markers=src, target_markers=tgt, eval_indenters=["wave"],
+                                         n_eval=4, sampler_steps=2),
+                nodes.flow_warp_sequence(source_markers=src, target_markers=tgt, eval_indenters=["wave"], n_eval=4)):
+        chunks, out = run_node(gen)
+        assert [len(c["images"]) for c in chunks] == [20, 20, 8]
+        for key in ("force", "depth", "phase", "contact_id", "indenter_id", "paired", "frame"):
+            np.testing.assert_array_equal(np.concatenate([c[key] for c in chunks]), src[key])
+        images = np.concatenate([c["images"] for c in chunks])
+        assert images.shape == src["images"].shape and set(np.unique(images)) <= {0, 255}
+        np.testing.assert_array_equal(out["reference"], tgt["reference"])
+        rows = eval_frame_indices(src, ["wave"], 4)
+        np.testing.assert_array_equal(out["eval_frames"], src["frame"][rows])
+        np.testing.assert_allclose(out["features"][:, 0], images[rows].mean(axis=(1, 2)))
+        assert out["indenters"] == ["sphere", "wave"] and out["attrs"]["n_eval"] == 4
+        assert bytes(out["figures"]["examples"][:4]) == PNG
+    assert out["attrs"]["method"] == "flow_warp"
+
+
+def test_finetune_starts_from_the_base_and_uses_few_pairs(skins, trained):
+    two = ["Array3", "Circle3"]
+    tuned = nodes.finetune(base=trained, markers=skins, skins=two, train_indenters=["sphere"],
+                           pairs_per_skin=3, steps=5, batch_size=4, lr=1e-4, seed=1)
+    assert tuned["attrs"]["pairs"] == 3 and tuned["attrs"]["base_skins"] == list(SKINS)
+    assert tuned["attrs"]["config"] == trained["attrs"]["config"]
+    w0, w1 = trained["weights"], tuned["weights"]
+    assert set(w0) == set(w1)
+    change = max(float(np.abs(w1[k] - w0[k]).max()) for k in w0)
+    assert 0 < change < 0.01              # 5 small steps away from the pretrained weights
+
+
+def test_image_study_metrics_matrices_and_figures():
+    rng = np.random.default_rng(0)
+    names = ["A", "B", "C"]
+    feats = {n: {"features": rng.normal(3 * i, 1.0, (10, 16))} for i, n in enumerate(names)}
+    pairs = [["A", "B"], ["B", "A"], ["C", "A"]]
+    near = {nodes.pair_label(s, t): {"features": feats[t]["features"] + rng.normal(0, 0.1, (10, 16))}
+            for s, t in pairs}
+    far = {nodes.pair_label(s, t): {"features": feats[t]["features"] + rng.normal(1.0, 0.5, (10, 16))}
+           for s, t in pairs}
+    out = nodes.image_study(study="sim-m2m", pairs=pairs, features=feats, translated=near, warped=far,
+                            kid_subset=5)
+    m = out["metrics"]
+    assert m["sim-m2m/A_B/before/fid"] == pytest.approx(fid(feats["A"]["features"], feats["B"]["features"]))
+    for method in ("before", "m2m", "flow_warp"):
+        vals = [m[f"sim-m2m/{s}_{t}/{method}/fid"] for s, t in pairs]
+        assert m[f"sim-m2m/mean/{method}/fid"] == pytest.approx(np.mean(vals))
+        assert f"sim-m2m/mean/{method}/kid" in m
+    assert m["sim-m2m/mean/m2m/fid"] < m["sim-m2m/mean/flow_warp/fid"] < m["sim-m2m/mean/before/fid"]
+    f = out["fid"]["m2m"]
+    assert f.shape == (3, 3) and np.isnan(f[0, 0]) and np.isnan(f[0, 2]) and np.isfinite(f[2, 0])
+    assert f[1, 0] == pytest.approx(m["sim-m2m/B_A/m2m/fid"])
+    assert out["skins"] == names and set(out["figures"]) == {"fid", "kid", "tsne"}
+    with pytest.raises(KeyError, match="source=C,target=B"):
+        nodes.image_study(study="x", pairs=[["C", "B"]], features=feats, translated=near, warped={},
+                          kid_subset=5)
