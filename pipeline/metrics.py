@@ -85,8 +85,12 @@ def compare(current: dict[str, float], baseline: dict) -> list[dict]:
 
 
 def save_baseline(path: Path, current: dict[str, float]) -> None:
-    """Write current metrics as the baseline, keeping the file's tolerances."""
-    tol = {}
+    """Write current metrics as the baseline.  An existing file keeps everything above its
+    `metrics:` section verbatim (the tolerances and the comments that justify them)."""
+    head = "tolerances: {}\n"
     if Path(path).exists():
-        tol = load_baseline(path)["tolerances"]
-    Path(path).write_text(yaml.safe_dump({"tolerances": tol, "metrics": current}, sort_keys=False))
+        load_baseline(path)  # refuse to rewrite a malformed file
+        lines = Path(path).read_text().splitlines(keepends=True)
+        cut = next((i for i, line in enumerate(lines) if line.startswith("metrics:")), len(lines))
+        head = "".join(lines[:cut])
+    Path(path).write_text(head + yaml.safe_dump({"metrics": current}, sort_keys=False))

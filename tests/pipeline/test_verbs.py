@@ -57,6 +57,11 @@ def test_metrics_and_baseline(toy, tmp_path):
     doc["tolerances"] = {"toy/total": {"rel": 20 / abs(m["toy/total"])}}
     base.write_text(yaml.safe_dump(doc))
     assert cli(toy, "metrics", "--baseline", str(base)).returncode == 0
+    # saving again keeps the tolerances and their comments verbatim, and only the metrics change
+    base.write_text("# why: noisy\n" + yaml.safe_dump({"tolerances": doc["tolerances"]}) + "metrics: {old: 1.0}\n")
+    cli(toy, "metrics", "--save-baseline", str(base))
+    assert base.read_text().startswith("# why: noisy\ntolerances:")
+    assert yaml.safe_load(base.read_text()) == {"tolerances": doc["tolerances"], "metrics": m}
     doc["metrics"]["toy/gone"] = 1.0
     base.write_text(yaml.safe_dump(doc))
     p = cli(toy, "metrics", "--baseline", str(base), check=False)
