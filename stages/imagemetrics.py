@@ -45,9 +45,11 @@ def inception_path() -> Path:
 
 @functools.lru_cache(maxsize=1)
 def inception():
-    """The InceptionV3 feature network, loaded once per process."""
+    """The InceptionV3 feature network, loaded once per process (on the GPU when torch sees
+    one)."""
     import torch
-    return torch.jit.load(str(inception_path()), map_location="cpu").eval()
+    dev = "cuda" if torch.cuda.is_available() else "cpu"
+    return torch.jit.load(str(inception_path()), map_location=dev).eval()
 
 
 def preprocess(images):
@@ -78,7 +80,8 @@ def _feature_module():
         num_features = FEATURES
 
         def forward(self, images):
-            return inception()(preprocess(images))
+            net = inception()
+            return net(preprocess(images).to(next(net.parameters()).device)).cpu()
 
     return InceptionFeatures()
 
@@ -91,9 +94,10 @@ def inception_features(images, batch: int = 32, progress: str | None = None) -> 
     n = len(images)
     out = np.zeros((n, FEATURES), np.float32)
     net = inception()
+    dev = next(net.parameters()).device
     with torch.inference_mode():
         for i in tqdm(range(0, n, batch), desc=progress or "inception", disable=None):
-            out[i:i + batch] = net(preprocess(np.asarray(images[i:i + batch]))).numpy()
+            out[i:i + batch] = net(preprocess(np.asarray(images[i:i + batch])).to(dev)).cpu().numpy()
     return out
 
 

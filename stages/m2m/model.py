@@ -26,6 +26,8 @@ the target sensor's reference image.  This is a CPU-sized version of the same id
 
 Weights are stored as a flat mapping parameter name -> numpy array; `config` (JSON-able)
 rebuilds the network.  `load_translator` turns a model artifact into a `Translator`.
+Training and translation run on the GPU when torch sees one (the paper profile), else on the
+CPU; weights always come back to the CPU as float32 arrays.
 """
 from __future__ import annotations
 
@@ -40,6 +42,11 @@ from torch.nn import functional as F
 from stages.m2m.data import attrs_of
 
 NOISE_SEED = 1234          # seed of the multi-step sampler's noise maps (NOISE_SEED + step)
+
+
+def device() -> torch.device:
+    """Where the networks run: the GPU when torch sees one (paper profile), else the CPU."""
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
 
 
 def default_config(*, size=(128, 128), width: int = 16, timesteps: int = 1000) -> dict:
@@ -143,15 +150,16 @@ def sample(net: M2MNet, cond: torch.Tensor, config: Mapping, steps: int = 1) -> 
     t = T-1.  Each further step re-noises the current x0 estimate to the next, smaller
     timestep with a fixed noise map and predicts x0 again (the multi-step sampling of
     one-step distilled models such as SD-Turbo)."""
-    abar = alphas_cumprod(config)
+    abar = alphas_cumprod(config).to(cond.device)
     b, _, h, w = cond.shape
     prob = None
     for i, t in enumerate(sampler_timesteps(config, steps)):
         if prob is None:
-            x = torch.zeros(b, 1, h, w)
+            x = torch.zeros(b, 1, h, w, device=cond.device)
         else:
-            x = abar[t].sqrt() * (2 * prob - 1) + (1 - abar[t]).sqrt() * noise_map((h, w), NOISE_SEED + i)
-        prob = torch.sigmoid(net(x, cond, torch.full((b,), t, dtype=torch.long)))
+            noise = noise_map((h, w), NOISE_SEED + i).to(cond.device)
+            x = abar[t].sqrt() * (2 * prob - 1) + (1 - abar[t]).sqrt() * noise
+        prob = torch.sigmoid(net(x, cond, torch.full((b,), t, dtype=torch.long, device=cond.device)))
     return prob
 
 
@@ -211,7 +219,8 @@ class Translator:
 
     def __init__(self, config: Mapping, weights: Mapping):
         self.config = dict(config)
-        self.net = build(self.config, weights)
+        self.device = device()
+        self.net = build(self.config, weights).to(self.device)
         self.size = tuple(self.config["size"])
 
     def probabilities(self, images, source_reference, target_reference, steps: int = 1,
@@ -222,13 +231,13 @@ class Translator:
             images = images[None]
         refs = _resize(np.stack([np.asarray(source_reference, np.uint8),
                                  np.asarray(target_reference, np.uint8)]), self.size)
-        refs_t = _to_unit(refs)
+        refs_t = _to_unit(refs).to(self.device)
         out = []
         with torch.inference_mode():
             for i in range(0, len(images), batch):
-                src = _to_unit(_resize(images[i:i + batch], self.size))[:, None]
+                src = _to_unit(_resize(images[i:i + batch], self.size))[:, None].to(self.device)
                 cond = torch.cat([src, refs_t[None].expand(len(src), 2, *self.size)], 1)
-                out.append(sample(self.net, cond, self.config, steps)[:, 0].numpy())
+                out.append(sample(self.net, cond, self.config, steps)[:, 0].cpu().numpy())
         return np.concatenate(out) if out else np.zeros((0, *self.size), np.float32)
 
     def translate(self, images, source_reference, target_reference, steps: int = 1,

@@ -130,11 +130,11 @@ def _examples_sheet(source, target, rows: np.ndarray, translated: np.ndarray) ->
         tgt = read_rows(target["images"], hit[:1])[0] if hit.size else t_ref
         src = np.asarray(source["images"][rows[p]:rows[p] + 1])[0]
         h, w = tgt.shape
-        tiles += [_fit(src, (h, w)), translated[p], tgt]
+        tiles += [_resize_nearest(src, (h, w)), translated[p], tgt]
     return contact_sheet(tiles, cols=3)
 
 
-def _fit(image: np.ndarray, shape) -> np.ndarray:
+def _resize_nearest(image: np.ndarray, shape) -> np.ndarray:
     import cv2
     return image if image.shape == tuple(shape) else cv2.resize(image, shape[::-1], interpolation=cv2.INTER_NEAREST)
 
@@ -178,13 +178,12 @@ def translate_sequence(*, model, source_markers, target_markers, eval_indenters:
     and `eval_frames` of the evaluation frames, figures/examples and attrs.  source, target:
     the skins' names (the fan-out's values)."""
     from stages.m2m.model import load_translator
-    source, target = source_markers, target_markers
     translator = load_translator(model)
-    src_ref = np.asarray(source["reference"], np.uint8)
-    tgt_ref = np.asarray(target["reference"], np.uint8)
-    result = yield from _stream(source, target, eval_indenters, n_eval,
+    src_ref = np.asarray(source_markers["reference"], np.uint8)
+    tgt_ref = np.asarray(target_markers["reference"], np.uint8)
+    result = yield from _stream(source_markers, target_markers, eval_indenters, n_eval,
                                 lambda im: translator.translate(im, src_ref, tgt_ref, int(sampler_steps)), "m2m")
-    result["attrs"]["sampler_steps"] = int(sampler_steps)
+    result["attrs"].update(sampler_steps=int(sampler_steps), source=source, target=target)
     return result
 
 
@@ -193,11 +192,12 @@ def flow_warp_sequence(*, source_markers, target_markers, eval_indenters: list[s
     """Node flow_warp[source,target]: the training-free baseline (stages.m2m.flow) with the
     same outputs as translate_sequence."""
     from stages.m2m.flow import MarkerFlow, warp
-    source, target = source_markers, target_markers
-    flow = MarkerFlow(np.asarray(source["reference"], np.uint8))
-    tgt_ref = np.asarray(target["reference"], np.uint8)
-    return (yield from _stream(source, target, eval_indenters, n_eval,
-                               lambda ims: np.stack([warp(tgt_ref, flow.field(im)) for im in ims]), "flow_warp"))
+    flow = MarkerFlow(np.asarray(source_markers["reference"], np.uint8))
+    tgt_ref = np.asarray(target_markers["reference"], np.uint8)
+    result = yield from _stream(source_markers, target_markers, eval_indenters, n_eval,
+                                lambda ims: np.stack([warp(tgt_ref, flow.field(im)) for im in ims]), "flow_warp")
+    result["attrs"].update(source=source, target=target)
+    return result
 
 
 def image_features(*, markers, eval_indenters: list[str], n_eval: int, skin: str = "") -> dict:

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
-from stages.m2m.model import M2MNet, alphas_cumprod
+from stages.m2m.model import M2MNet, alphas_cumprod, device
 
 ONESTEP_FRACTION = 0.5     # share of each batch trained at the one-step timestep T-1
 DICE_WEIGHT = 1.0
@@ -99,6 +99,8 @@ def fit(net: M2MNet, config, batches: Callable, *, steps: int, batch_size: int, 
     from tqdm import tqdm
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
+    dev = device()
+    net.to(dev)
     opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=WEIGHT_DECAY)
     warm = max(1, int(WARMUP * steps))
     sched = torch.optim.lr_scheduler.LambdaLR(
@@ -109,6 +111,7 @@ def fit(net: M2MNet, config, batches: Callable, *, steps: int, batch_size: int, 
     for i in tqdm(range(steps), desc=progress, disable=None):
         cond, target = batches(batch_size)
         x_t, t = noisy_input(target, config, gen)
+        cond, target, x_t, t = cond.to(dev), target.to(dev), x_t.to(dev), t.to(dev)
         loss = loss_fn(net(x_t, cond, t), target)
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -116,5 +119,5 @@ def fit(net: M2MNet, config, batches: Callable, *, steps: int, batch_size: int, 
         sched.step()
         losses[i] = loss.item()
     seconds = time.perf_counter() - t0
-    net.eval()
+    net.cpu().eval()
     return {"loss": losses, "seconds": seconds, "steps_per_s": steps / max(seconds, 1e-9)}

@@ -2,7 +2,6 @@
 collection trajectory (2 contacts x 24 frames), and a runner that drains the capture node."""
 from pathlib import Path
 
-import numpy as np
 import pytest
 from capture_util import concat, drain
 import yaml

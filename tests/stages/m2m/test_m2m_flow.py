@@ -1,7 +1,7 @@
 """The flow-warp baseline: identity, and that it carries the source's marker motion over."""
 import numpy as np
 import pytest
-from conftest import SIZE, marker_artifact, true_motion_px
+from m2m_synthetic import SIZE, marker_artifact, true_motion_px
 
 from stages.m2m.flow import MarkerFlow, centroids, flow_warp, match, pitch, splat, warp
 

@@ -1,7 +1,7 @@
 """Node functions: training, translation streams, features and the image study."""
 import numpy as np
 import pytest
-from conftest import SKINS, run_node
+from m2m_synthetic import SKINS, run_node
 
 from stages.imagemetrics import fid, kid
 from stages.m2m import nodes
