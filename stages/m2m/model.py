@@ -9,7 +9,7 @@ the target sensor's reference image.  This is a CPU-sized version of the same id
 * A compact UNet: pixel-unshuffle by 2 (so the first level runs at H/2 with 16 channels
   instead of H with 4), three levels of `width`, 2x`width`, 4x`width` channels, GroupNorm,
   SiLU, residual blocks with a scale-shift timestep embedding, skip connections,
-  pixel-shuffle back to full resolution.  Its receptive field (~70 px at the bottom level)
+  pixel-shuffle back to full resolution.  Its receptive field (~100 px through the bottom level)
   spans several marker pitches, enough to carry the displacement of a neighbourhood of
   source markers onto the target markers in between.
 * It predicts the target marker image x0 as logits (probability = sigmoid); binary 0/255
