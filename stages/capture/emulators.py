@@ -20,6 +20,7 @@ the robot's protective_stop_at K (the K-th moveL fails and the robot stays stopp
 """
 from __future__ import annotations
 
+import abc
 import json
 import os
 import select
@@ -44,7 +45,7 @@ SETTINGS = {"robot": (), "netft": ("rate_hz", "bias", "noise_N", "seed"),
             "xela": ("rate_hz", "gains", "noise", "hex"), "camera": ("supersample",)}
 
 
-class _Thread:
+class _Thread(abc.ABC):
     """start()/stop() of a daemon loop thread, as a context manager."""
 
     def __init__(self):
@@ -66,8 +67,9 @@ class _Thread:
     def __exit__(self, *exc):
         self.stop()
 
+    @abc.abstractmethod
     def _loop(self) -> None:
-        raise NotImplementedError
+        """The server's body, run in its thread until stop()."""
 
 
 class _Faults:
@@ -226,8 +228,9 @@ class _PtyDevice(_Thread):
     def _timeout(self) -> float:
         return 0.05
 
+    @abc.abstractmethod
     def _command(self, cmd: bytes) -> None:
-        raise NotImplementedError
+        """Answer one command line from the client."""
 
     def _tick(self) -> None:
         pass
