@@ -1,27 +1,13 @@
 """Shared inputs of the capture tests: the ci sensor catalogue, two indenter meshes, a tiny
 collection trajectory (2 contacts x 24 frames), and a runner that drains the capture node."""
-from pathlib import Path
-
 import pytest
-from capture_util import concat, drain
-import yaml
 
-ROOT = Path(__file__).resolve().parents[3]
-
-
-def _merge(base: dict, overlay: dict) -> None:
-    for k, v in overlay.items():
-        if isinstance(v, dict):
-            _merge(base[k], v)
-        else:
-            base[k] = v
+from tests.helpers import concat, drain, load_params
 
 
 @pytest.fixture(scope="session")
 def ci():
-    params = yaml.safe_load((ROOT / "params.yaml").read_text())
-    _merge(params, yaml.safe_load((ROOT / "params" / "ci.yaml").read_text()))
-    return params
+    return load_params("ci")
 
 
 @pytest.fixture(scope="session")

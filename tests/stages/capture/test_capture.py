@@ -4,8 +4,11 @@ import os
 import numpy as np
 import pytest
 
-from capture_util import LABELS, drain
 from stages.capture import DeviceError
+from tests.helpers import drain
+
+LABELS = ("force", "torque", "position", "target", "depth", "normalised_depth", "shift", "phase",
+          "contact_id", "indenter_id", "paired", "frame")
 
 
 @pytest.fixture(scope="module")

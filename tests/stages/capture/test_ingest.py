@@ -5,9 +5,9 @@ import cv2
 import numpy as np
 import pytest
 
-from capture_util import drain
 from stages.capture.ingest import infer_phase, ingest, paired_frames, write_example_dataset
 from stages.sim.indenters import ALL_INDENTERS
+from tests.helpers import drain
 
 
 @pytest.fixture(scope="module")

@@ -44,16 +44,6 @@ def marker_artifact(name, n_frames=48, size=SIZE, seed=0, scale=None):
     }
 
 
-def run_node(gen):
-    """Drain a generator node: (list of chunks, returned mapping)."""
-    chunks = []
-    try:
-        while True:
-            chunks.append(next(gen))
-    except StopIteration as stop:
-        return chunks, stop.value
-
-
 def true_motion_px(name, frame_index, n_frames=48, size=SIZE, seed=0):
     """Reference marker centres and their true displacement in frame `frame_index`, in px
     (pixel i's centre at i, as cv2 centroids count)."""

@@ -1,11 +1,12 @@
 """Node functions: training, translation streams, features and the image study."""
 import numpy as np
 import pytest
-from m2m_synthetic import SKINS, run_node
+from m2m_synthetic import SKINS
 
 from stages.imagemetrics import fid, kid
 from stages.m2m import nodes
 from stages.m2m.data import eval_frame_indices
+from tests.helpers import drain as run_node
 
 N_EVAL = 6
 PNG = bytes([0x89, 0x50, 0x4E, 0x47])

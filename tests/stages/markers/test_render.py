@@ -15,6 +15,7 @@ from stages.markers.mitsuba_backend import llvm_usable, llvm_version, resolve_ba
 from stages.markers.patterns import gelsight_pattern, pattern, rasterize, tactip_pattern
 from stages.markers.render import (LABEL_KEYS, Renderer, camera_distance, camera_fov_x, marker_set,
                                    render_frames, render_sequence)
+from tests.helpers import drain
 
 GOLDEN = Path(__file__).parent / "golden"
 PNG = b"\x89PNG\r\n\x1a\n"
@@ -279,13 +280,7 @@ def test_node_streams_chunks_and_carries_labels():
                                                "source": "render"},
                           size=[32, 32], spp=1, backend="auto")
     assert inspect.isgenerator(gen)
-    chunks = []
-    while True:
-        try:
-            chunks.append(next(gen))
-        except StopIteration as stop:
-            final = stop.value
-            break
+    chunks, final = drain(gen)
     assert [len(c["truth"]) for c in chunks] == [32, 8]
     assert all("raw" not in c for c in chunks)
     truth = np.concatenate([c["truth"] for c in chunks])

@@ -8,6 +8,7 @@ from marker_looks import gelsight_frame, tactip_frame
 from stages.markers.segment import iou, segment
 from stages.markers.uskin import MID_SCALE, signal_to_marker
 from stages.markers.unify import marker_sequence, segmentation_params
+from tests.helpers import concat, drain
 
 
 class Art(dict):
@@ -28,16 +29,9 @@ def labels(n):
 
 
 def run(gen):
-    chunks = []
-    while True:
-        try:
-            chunks.append(next(gen))
-        except StopIteration as stop:
-            out = stop.value
-            break
-    for key in chunks[0]:
-        out[key] = np.concatenate([c[key] for c in chunks])
-    return chunks, out
+    """(chunks, the final mapping with the chunks' arrays joined in)."""
+    chunks, out = drain(gen)
+    return chunks, {**out, **concat(chunks)}
 
 
 def assert_labels_copied(out, source):

@@ -8,6 +8,7 @@ import pytest
 from stages.markers.patterns import USKIN_PAD_MM, rasterize, uskin_pattern
 from stages.markers.uskin import (BASE_AREA, GAINS, MID_SCALE, parse_xela, signal_to_marker,
                                   taxel_centres, taxel_sequence, taxel_signals, taxel_weights)
+from tests.helpers import drain
 
 PAD_W, PAD_H = USKIN_PAD_MM
 GRID_X = (np.arange(31) - 15) * 0.8          # the ci grid of the uskin twin
@@ -175,15 +176,6 @@ def test_parse_xela_rejects_malformed(message, error):
     assert "\n" not in str(info.value)
 
 
-def run(gen):
-    chunks = []
-    while True:
-        try:
-            chunks.append(next(gen))
-        except StopIteration as stop:
-            return chunks, stop.value
-
-
 def test_taxel_sequence_streams_signals_and_labels(monkeypatch):
     import stages.markers.uskin as uskin
     monkeypatch.setattr(uskin, "CHUNK", 3)
@@ -193,7 +185,7 @@ def test_taxel_sequence_streams_signals_and_labels(monkeypatch):
               "frame": np.arange(n, dtype=np.int64) + 100, "contact_id": np.zeros(n, np.int32),
               "indenters": np.array(["sphere", "prism"])}
     spec = {"variant": "3axis", "noise": 0.0, "offset_std": 100.0, "seed": 4}
-    chunks, out = run(taxel_sequence(deform=deform, skin="uskin-3axis", spec=spec))
+    chunks, out = drain(taxel_sequence(deform=deform, skin="uskin-3axis", spec=spec))
     assert [len(c["signals"]) for c in chunks] == [3, 3, 1]
     signals = np.concatenate([c["signals"] for c in chunks])
     assert np.array_equal(np.concatenate([c["frame"] for c in chunks]), deform["frame"])
@@ -204,4 +196,4 @@ def test_taxel_sequence_streams_signals_and_labels(monkeypatch):
     assert out["attrs"]["variant"] == "3axis" and out["attrs"]["gains"] == list(GAINS)
     assert list(out["indenters"]) == ["sphere", "prism"]
     with pytest.raises(ValueError, match="variant must be one of"):
-        run(taxel_sequence(deform=deform, skin="uskin-x", spec={"variant": "xy"}))
+        drain(taxel_sequence(deform=deform, skin="uskin-x", spec={"variant": "xy"}))

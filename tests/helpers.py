@@ -1,0 +1,44 @@
+"""Helpers shared by test folders (a plain module: `conftest` names clash across folders)."""
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def drain(gen):
+    """Run a streaming node to the end: (list of yielded chunks, the returned mapping)."""
+    chunks = []
+    while True:
+        try:
+            chunks.append(next(gen))
+        except StopIteration as stop:
+            return chunks, stop.value
+
+
+def concat(chunks) -> dict:
+    """The chunks joined along the frame axis (nested mappings joined key by key)."""
+    out = {}
+    for key, value in chunks[0].items():
+        if isinstance(value, dict):
+            out[key] = {k: np.concatenate([c[key][k] for c in chunks]) for k in value}
+        else:
+            out[key] = np.concatenate([c[key] for c in chunks])
+    return out
+
+
+def _merge(base: dict, overlay: dict) -> None:
+    for k, v in overlay.items():
+        if isinstance(v, dict):
+            _merge(base[k], v)
+        else:
+            base[k] = v
+
+
+def load_params(profile: str | None = None) -> dict:
+    """params.yaml with a profile's overrides merged in (profiles only change values)."""
+    params = yaml.safe_load((ROOT / "params.yaml").read_text())
+    if profile:
+        _merge(params, yaml.safe_load((ROOT / "params" / f"{profile}.yaml").read_text()))
+    return params
