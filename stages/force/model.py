@@ -35,13 +35,14 @@ prediction time.  Weights serialise to plain arrays (:func:`to_arrays` / :func:`
 """
 from __future__ import annotations
 
-import json
 from typing import Mapping
 
 import numpy as np
 import torch
 from torch import nn
 from torch.nn import functional as F
+
+from stages.common import attrs_of
 
 DEFAULT_CONFIG = {
     "input_size": 64,                     # side S of the area-resized input images
@@ -340,14 +341,6 @@ def from_arrays(arrays: Mapping, config: Mapping) -> ForceRegressor:
     return model.eval()
 
 
-def _stored_attrs(art) -> dict:
-    """attrs of a store artifact (.attrs, JSON values as text) or of a node's output dict."""
-    attrs = getattr(art, "attrs", None)
-    if attrs is None and isinstance(art, Mapping):
-        attrs = art.get("attrs", {})
-    return dict(attrs or {})
-
-
 def _stored_arrays(art, prefix: str) -> dict:
     """The arrays of a model group: a nested dict (node output) or 'prefix/name' datasets."""
     try:
@@ -366,9 +359,7 @@ def _stored_arrays(art, prefix: str) -> dict:
 def load_model(art, prefix: str = "weights") -> ForceRegressor:
     """The regressor stored in an own ("weights") or transfer ("genforce", "genforce_comp")
     artifact, or in such a node's output dict; eval mode."""
-    config = _stored_attrs(art).get("config")
-    if isinstance(config, str):
-        config = json.loads(config)
+    config = attrs_of(art).get("config")
     if config is None:
         raise KeyError("the artifact has no attrs['config'] for its force model")
     return from_arrays(_stored_arrays(art, prefix), config)

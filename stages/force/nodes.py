@@ -14,10 +14,11 @@ model.load_model / model.load_predictor rebuild them.
 """
 from __future__ import annotations
 
-import json
 from typing import Mapping, Sequence
 
 import numpy as np
+
+from stages.common import attrs_of
 
 TRAIN_DEFAULTS = {
     "seq_len": 32,                # longest training window (frames)
@@ -28,17 +29,6 @@ _COLOURS = {"source_only": "C3", "genforce": "C0", "genforce_comp": "C2", "oracl
 
 
 # ---------------------------------------------------------------------------- artifacts
-
-def _attrs(art) -> dict:
-    attrs = getattr(art, "attrs", None)
-    if attrs is None and isinstance(art, Mapping):
-        attrs = art.get("attrs", {})
-    return dict(attrs or {})
-
-
-def _json(value):
-    return json.loads(value) if isinstance(value, str) else value
-
 
 def _split_config(config: Mapping | None) -> tuple[dict, dict]:
     """User config -> (model config, training options)."""
@@ -234,7 +224,7 @@ def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_fra
         if t not in oracle_pred:
             oracle_pred[t] = predict(own[t], "weights")
         preds = {"source_only": predict(own[s], "weights"), "genforce": predict(tr, "genforce")}
-        identical = bool(_json(_attrs(tr).get("compensation_identity", False)))
+        identical = bool(attrs_of(tr).get("compensation_identity", False))
         preds["genforce_comp"] = preds["genforce"] if identical else predict(tr, "genforce_comp")
         preds["oracle"] = oracle_pred[t]
         scores = {m: force_metrics(preds[m], test["force"]) for m in METHODS}

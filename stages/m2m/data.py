@@ -18,14 +18,6 @@ LABEL_KEYS = ("force", "depth", "normalised_depth", "position", "shift", "phase"
               "indenter_id", "paired", "frame")
 
 
-def attrs_of(art) -> dict:
-    """An artifact's attributes (store artifacts: `.attrs`; plain dicts: an "attrs" entry)."""
-    attrs = getattr(art, "attrs", None)
-    if attrs is None and isinstance(art, Mapping):
-        attrs = art.get("attrs", {})
-    return dict(attrs or {})
-
-
 def indenter_names(art) -> list[str]:
     """The names `indenter_id` indexes, from the artifact's `indenters` dataset."""
     if "indenters" not in art:

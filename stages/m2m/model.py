@@ -39,7 +39,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from stages.m2m.data import attrs_of
+from stages.common import attrs_of
 
 NOISE_SEED = 1234          # seed of the multi-step sampler's noise maps (NOISE_SEED + step)
 

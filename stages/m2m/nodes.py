@@ -18,7 +18,8 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from stages.figures import contact_sheet, figure_png, png
-from stages.m2m.data import (LABEL_KEYS, attrs_of, eval_frame_indices, paired_table, read_rows)
+from stages.common import attrs_of
+from stages.m2m.data import LABEL_KEYS, eval_frame_indices, paired_table, read_rows
 
 CHUNK = 64              # frames per streamed chunk
 N_EXAMPLES = 4          # rows of the examples figure

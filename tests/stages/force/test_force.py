@@ -218,8 +218,8 @@ def test_fit_own_outputs(nodes_out, skins):
     json.dumps(out["attrs"])                                     # attrs are JSON-able
 
     class Stored(dict):
-        """What a store hands over: flat 'group/name' datasets, JSON attrs read back as text."""
-        attrs = {"config": json.dumps(out["attrs"]["config"])}
+        """What a store hands over: flat 'group/name' datasets, nested attrs decoded."""
+        attrs = json.loads(json.dumps({"config": out["attrs"]["config"]}))
 
     stored = Stored({f"weights/{k}": v for k, v in out["weights"].items()})
     assert out["weights"]["encoder.stem.1.num_batches_tracked"].shape == (1,)   # no 0-d datasets
