@@ -28,11 +28,15 @@ def figure_png(fig, dpi: int = 100) -> np.ndarray:
 
 
 def contact_sheet(images, cols: int, border: int = 2, fill: int = 90) -> np.ndarray:
-    """Tile equally sized grayscale images row by row with a grey border."""
+    """Tile equally sized images row by row with a grey border; grayscale (H,W) images give a
+    grayscale sheet, and when any image is RGB (H,W,3) the sheet is RGB."""
     images = [np.asarray(i, np.uint8) for i in images]
+    if any(i.ndim == 3 for i in images):
+        images = [np.repeat(i[..., None], 3, 2) if i.ndim == 2 else i for i in images]
     h, w = images[0].shape[:2]
     rows = -(-len(images) // cols)
-    sheet = np.full((rows * (h + border) + border, cols * (w + border) + border), fill, np.uint8)
+    sheet = np.full((rows * (h + border) + border, cols * (w + border) + border, *images[0].shape[2:]),
+                    fill, np.uint8)
     for k, img in enumerate(images):
         r, c = divmod(k, cols)
         y, x = border + r * (h + border), border + c * (w + border)

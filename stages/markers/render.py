@@ -276,19 +276,6 @@ def _sheet_frames(depth: np.ndarray | None, n: int, k: int = 4) -> list[int]:
     return [int(a + np.argmax(depth[a:b])) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
-def _contact_sheet(rows: list[list[np.ndarray]], border: int = 2, fill: int = 90) -> np.ndarray:
-    """RGB tiles (grey images become RGB): a row of raw frames above their truth masks."""
-    tiles = [[np.repeat(t[..., None], 3, -1) if t.ndim == 2 else t for t in row] for row in rows]
-    h, w = tiles[0][0].shape[:2]
-    cols = max(len(r) for r in tiles)
-    sheet = np.full((len(tiles) * (h + border) + border, cols * (w + border) + border, 3), fill, np.uint8)
-    for i, row in enumerate(tiles):
-        for j, t in enumerate(row):
-            y, x = border + i * (h + border), border + j * (w + border)
-            sheet[y:y + h, x:x + w] = t
-    return sheet
-
-
 def render_sequence(*, deform: Mapping, patterns: Mapping, skin: str, spec: Mapping, size,
                     spp: int, backend: str):
     """Node `render[skin]`: marker images of a deform artifact's frames, in chunks of 32.
@@ -303,7 +290,7 @@ def render_sequence(*, deform: Mapping, patterns: Mapping, skin: str, spec: Mapp
     attrs.
     """
     from tqdm import tqdm
-    from stages.figures import png
+    from stages.figures import contact_sheet, png
 
     look = spec.get("look", "none")
     if look not in LOOKS:
@@ -339,7 +326,8 @@ def render_sequence(*, deform: Mapping, patterns: Mapping, skin: str, spec: Mapp
     if "raw" in reference:
         out["raw_reference"] = reference["raw"]
     rows = [[sheet[i][k] for i in picks] for k in (0, 1) if picks and sheet[picks[0]][k] is not None]
-    out["figures"] = {"frames": png(_contact_sheet(rows or [[reference["truth"]]]))}
+    rows = rows or [[reference["truth"]]]                   # raw frames above their truth masks
+    out["figures"] = {"frames": png(contact_sheet([img for row in rows for img in row], cols=len(rows[0])))}
     out["attrs"] = {"backend": renderer.backend, "spp": int(spp), "size": list(renderer.size),
                     "look": look, "pattern": str(spec["pattern"]), "sensor": str(spec.get("sensor", "")),
                     "seconds_per_frame": seconds / n if n else 0.0, "fov_x_deg": renderer.fov_x,

@@ -54,25 +54,6 @@ def _example_frames(source: Mapping, n: int, k: int = EXAMPLES) -> list[int]:
     return sorted(set(int(i) for i in picks))
 
 
-def _rgb(img: np.ndarray) -> np.ndarray:
-    img = np.asarray(img, np.uint8)
-    return np.repeat(img[..., None], 3, 2) if img.ndim == 2 else img
-
-
-def _sheet(rows, border: int = 2, fill: int = 90) -> np.ndarray:
-    """RGB contact sheet of equally sized images, one list of images per row."""
-    rows = [[_rgb(i) for i in r] for r in rows]
-    h, w = rows[0][0].shape[:2]
-    cols = max(len(r) for r in rows)
-    sheet = np.full((len(rows) * (h + border) + border, cols * (w + border) + border, 3), fill,
-                    np.uint8)
-    for r, row in enumerate(rows):
-        for c, img in enumerate(row):
-            y, x = border + r * (h + border), border + c * (w + border)
-            sheet[y:y + h, x:x + w] = img
-    return sheet
-
-
 def _taxel_settings(source: Mapping, spec: Mapping, skin: str) -> dict:
     if "size" not in spec:
         raise KeyError(f"markers[{skin}]: the taxel look needs `size` ([H, W]) in the skin's params")
@@ -142,8 +123,9 @@ def marker_sequence(*, source: Mapping, skin: str, spec: Mapping, segmentation: 
         reference = signal_to_marker(baseline, baseline, **settings)
     else:
         reference = segment(np.asarray(source["raw_reference"]), **params)
-    if look in POLARITY:
-        sheet = _sheet([shown[i] for i in examples] or [[reference]])
+    if look in POLARITY:                       # a row per example: raw | segmented | truth
+        rows = [shown[i] for i in examples] or [[reference]]
+        sheet = contact_sheet([img for row in rows for img in row], cols=len(rows[0]))
     else:
         sheet = contact_sheet([reference] + [shown[i][0] for i in examples], cols=EXAMPLES + 1)
     out = {"reference": reference, "figures": {"examples": png(sheet)},
