@@ -7,6 +7,7 @@ dask     a dask.distributed cluster (--address tcp://...), or a LocalCluster whe
 from __future__ import annotations
 
 import concurrent.futures as cf
+import os
 from typing import Callable
 
 from pipeline.errors import PipelineError
@@ -33,12 +34,30 @@ class InlineExecutor:
         pass
 
 
+THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+
+
+def worker_threads(jobs: int) -> int:
+    """Threads each of `jobs` workers may use so that together they fill, not oversubscribe, the CPU."""
+    return max(1, (os.cpu_count() or 1) // max(1, jobs))
+
+
+def _limit_threads(n: int) -> None:
+    """Pool initializer: cap OpenMP/BLAS threads before any numeric library is imported.
+
+    Spinning OpenMP threads of several workers on shared cores slow each other down many times
+    over; a value the user set explicitly is kept."""
+    for var in THREAD_VARS:
+        os.environ.setdefault(var, str(n))
+
+
 class ProcessExecutor(InlineExecutor):
     name = "process"
 
     def __init__(self, jobs: int):
         import multiprocessing as mp
-        self.pool = cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"))
+        self.pool = cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
+                                           initializer=_limit_threads, initargs=(worker_threads(jobs),))
 
     def submit(self, fn, task):
         return self.pool.submit(fn, task)

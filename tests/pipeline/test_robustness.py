@@ -101,6 +101,23 @@ def _digests(store: Path) -> dict:
     return {r["instance"]: (r["key"], r["digest"]) for r in recs}
 
 
+def _thread_env(_task):
+    return {v: os.environ.get(v) for v in ("OMP_NUM_THREADS", "MKL_NUM_THREADS")}
+
+
+def test_process_workers_share_the_cores(monkeypatch):
+    """Each of N spawned workers gets cores // N OpenMP threads, unless the user set a value."""
+    from pipeline.executors import ProcessExecutor
+    monkeypatch.setattr(os, "cpu_count", lambda: 8)   # the parent computes the share
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.setenv("MKL_NUM_THREADS", "3")
+    ex = ProcessExecutor(4)
+    try:
+        assert ex.result(ex.submit(_thread_env, {})) == {"OMP_NUM_THREADS": "2", "MKL_NUM_THREADS": "3"}
+    finally:
+        ex.close()
+
+
 @pytest.mark.parametrize("executor", ["process", "dask"])
 def test_parallel_executors_match_serial(toy, executor):
     run_json(toy, "--store", "serial")
