@@ -11,8 +11,15 @@ Table 1, images/s per backend x look x size:
   node   render_sequence drained after its first chunk (chunks of 8 here), i.e. once the scene
          is built (vertex resampling, ray tracing, texture lookups, shading, chunking, labels);
   bare   the same Mitsuba scene in a bare loop: set vertex_positions, params.update(),
-         mi.render, copy to numpy - vertex buffers prepared before timing;
-  ratio  node / bare (the cost of everything that is not Mitsuba);
+         mi.render, copy to numpy - vertex buffers prepared before timing; for a camera look
+         (gelsight) the bare loop also calls the look's deferred shading (looks.shade and
+         camera_image on the traced samples, normals and positions prepared before timing),
+         because Mitsuba alone gives no camera image of this look (its own light sampling
+         needs hundreds of samples per pixel for three coloured LEDs; see render.py);
+  ratio  node / bare (the cost of everything the node adds to rendering: vertex resampling,
+         texture lookup, hole filling, truth masks, chunking, labels);
+  trace  for camera looks, the bare trace alone (no shading) and node / trace, so the
+         shading's own cost stays visible;
   cpu ms CPU time per frame (all threads): on a busy machine a steadier measure than img/s.
 Table 2: peak Python-heap memory (tracemalloc: numpy buffers included, Mitsuba's own
 allocations not) while draining the node over 100 and 1000 frames; it must not grow.
@@ -28,6 +35,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import numpy as np                                                              # noqa: E402
 
+import stages.markers.looks as looks                                            # noqa: E402
 import stages.markers.render as render                                          # noqa: E402
 from benchmarks.summary import record                                           # noqa: E402
 from stages.markers.mitsuba_backend import llvm_usable, mitsuba, thread_count   # noqa: E402
@@ -124,18 +132,38 @@ def node_rate(look, size, backend, n, spp):
     return frames / (time.perf_counter() - t), 1e3 * (time.process_time() - cpu) / frames
 
 
-def bare_rate(look, size, backend, n, spp):
+def bare_rate(look, size, backend, n, spp, shaded=True):
+    """Bare loop over the same scene; with `shaded` (camera looks), plus the look's shading."""
     _, ms, pad = SKINS[look]
     d = SyntheticDeform(1, pad)
     r = Renderer(d["grid_x"], d["grid_y"], d["surface_z"], d["on_pad"], ms, look=look,
-                 size=size, spp=spp, backend=backend)
-    buffers = [r.vertex_buffer(r.mesh.positions(f)) for f in fields(pad)]
+                 size=size, spp=spp, backend=backend, noise=2.0)
+    positions = [r.mesh.positions(f) for f in fields(pad)]
+    buffers = [r.vertex_buffer(p) for p in positions]
     mi = mitsuba(r.backend)
+    shade = shaded and look != "none"
+    if shade:      # per field: channel-first unit normals and positions on the vertex grid
+        import cv2
+        grids = [np.concatenate([r.mesh.normals(p), p], -1).astype(np.float32) for p in positions]
+        rng = np.random.default_rng(0)
 
     def frame(k):
         r.params["pad.vertex_positions"] = buffers[k % len(buffers)]
         r.params.update()
-        return np.array(mi.render(r.scene, spp=1))
+        samples = np.array(mi.render(r.scene, spp=1))
+        if not shade:
+            return samples
+        th, tw = r.texture.shape
+        cov = cv2.remap(r.texture, samples[..., 0] * tw - 0.5, samples[..., 1] * th - 0.5,
+                        cv2.INTER_LINEAR)
+        x = (samples[..., 0] - 0.5) * r.mesh.pad[0]
+        y = (samples[..., 1] - 0.5) * r.mesh.pad[1]
+        at = cv2.remap(grids[k % len(grids)], *[v.astype(np.float32) for v in r.mesh.grid_index(x, y)],
+                       cv2.INTER_LINEAR)
+        at = np.ascontiguousarray(at.transpose(2, 0, 1))
+        at[:3] /= np.sqrt((at[:3] ** 2).sum(0))
+        radiance = looks.shade(r.shading, r.leds, at[:3], at[3:], cov, r.eye)
+        return looks.camera_image(radiance.transpose(1, 2, 0), r.noise, rng)
 
     with thread_count(render.THREADS):                # as the node runs
         frame(0)
@@ -169,7 +197,8 @@ def main():
           + " ".join(f"{v:.1f}" for v in os.getloadavg()))
     chunk, render.CHUNK = render.CHUNK, 8                 # time the node from its 9th frame
     print(f"{'backend':8s} {'look':9s} {'size':>8s} {'spp':>3s} {'frames':>6s} {'node img/s':>10s} "
-          f"{'bare img/s':>10s} {'ratio':>6s} {'node cpu ms':>11s} {'bare cpu ms':>11s}")
+          f"{'bare img/s':>10s} {'ratio':>6s} {'node cpu ms':>11s} {'bare cpu ms':>11s} "
+          f"{'trace img/s':>11s} {'node / trace':>12s}")
     for backend in backends:
         for look in ("none", "gelsight"):
             for size in sizes:
@@ -178,11 +207,17 @@ def main():
                 n = int(np.clip(budget * probe, 24, 400))
                 bare, bare_cpu = bare_rate(look, size, backend, n, spp)
                 node, node_cpu = node_rate(look, size, backend, n, spp)
+                trace = bare_rate(look, size, backend, n, spp, shaded=False)[0] if look != "none" else None
                 print(f"{backend:8s} {look:9s} {size[0]:>3d}x{size[1]:<4d} {spp:>3d} {n:>6d} "
                       f"{node:>10.1f} {bare:>10.1f} {node / bare:>6.2f} {node_cpu:>11.2f} "
-                      f"{bare_cpu:>11.2f}", flush=True)
-                record("render", f"node / bare Mitsuba, {backend} {look} {size[0]}x{size[1]}",
+                      f"{bare_cpu:>11.2f}" + (f" {trace:>11.1f} {node / trace:>12.2f}" if trace else ""),
+                      flush=True)
+                what = "bare Mitsuba" + (" + shading" if look != "none" else "")
+                record("render", f"node / {what}, {backend} {look} {size[0]}x{size[1]}",
                        f"{node:.1f} / {bare:.1f} img/s", node / bare, ">= 0.85")
+                if trace:
+                    record("render", f"node / bare trace (shading cost), {backend} {look} "
+                           f"{size[0]}x{size[1]}", f"{node:.1f} / {trace:.1f} img/s", node / trace, "info")
     render.CHUNK = chunk
     counts = (50, 200) if args.quick else (100, 1000)
     print(f"\npeak memory of render_sequence (look none, 128x128, {backends[0]}), tracemalloc:")
