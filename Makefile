@@ -20,7 +20,7 @@ $(TEST_STAMP): $(STAMP)
 	touch $(TEST_STAMP)
 
 run: setup
-	.venv/bin/pipeline run
+	.venv/bin/pipeline run --executor process
 
 test: setup-test
 	$(PY) -m pytest -q
