@@ -21,7 +21,9 @@ Table 1, images/s per backend x look x size:
   trace  for camera looks, the bare trace alone (no shading) and node / trace, so the
          shading's own cost stays visible;
   cpu ms CPU time per frame (all threads): on a busy machine a steadier measure than img/s.
-Table 2: peak Python-heap memory (tracemalloc: numpy buffers included, Mitsuba's own
+Table 2, segmentation images/s (stages.markers.segment, the params.yaml defaults: otsu and
+grabcut) on raw GelSight frames rendered here, with the IoU against their truth masks.
+Table 3: peak Python-heap memory (tracemalloc: numpy buffers included, Mitsuba's own
 allocations not) while draining the node over 100 and 1000 frames; it must not grow.
 """
 import argparse
@@ -173,6 +175,27 @@ def bare_rate(look, size, backend, n, spp, shaded=True):
         return n / (time.perf_counter() - t), 1e3 * (time.process_time() - cpu) / n
 
 
+def segmentation_rate(size, backend, method, budget):
+    """(images/s, mean IoU) of segment() on raw GelSight C-II frames of `size`."""
+    from stages.markers.segment import iou, segment
+    name, ms, pad = SKINS["gelsight"]
+    spec = {"sensor": "synthetic", "pattern": name, "look": "gelsight", "noise": 2.0}
+    frames = [c for c in render_sequence(deform=SyntheticDeform(DISTINCT, pad),
+                                         patterns=patterns_input(name, ms), skin=name, spec=spec,
+                                         size=size, spp=1, backend=backend)]
+    raw = np.concatenate([c["raw"] for c in frames])
+    truth = np.concatenate([c["truth"] for c in frames])
+    segment(raw[0], polarity="dark", method=method, min_area=3, box_margin=3)
+    t, n, scores = time.perf_counter(), 0, []
+    while n < len(raw) or time.perf_counter() - t < budget:
+        k = n % len(raw)
+        mask = segment(raw[k], polarity="dark", method=method, min_area=3, box_margin=3)
+        if n < len(raw):
+            scores.append(iou(mask, truth[k]))
+        n += 1
+    return n / (time.perf_counter() - t), float(np.mean(scores))
+
+
 def peak_mb(n, size, backend):
     name, ms, pad = SKINS["none"]
     spec = {"sensor": "synthetic", "pattern": name, "look": "none"}
@@ -219,6 +242,14 @@ def main():
                     record("render", f"node / bare trace (shading cost), {backend} {look} "
                            f"{size[0]}x{size[1]}", f"{node:.1f} / {trace:.1f} img/s", node / trace, "info")
     render.CHUNK = chunk
+    print(f"\nsegmentation of raw GelSight frames ({backends[0]} renders):")
+    print(f"{'method':8s} {'size':>8s} {'img/s':>8s} {'IoU':>6s}")
+    for method in ("otsu", "grabcut"):
+        for size in sizes[:2]:
+            rate, score = segmentation_rate(size, backends[0], method, budget)
+            print(f"{method:8s} {size[0]:>3d}x{size[1]:<4d} {rate:>8.1f} {score:>6.3f}", flush=True)
+            record("render", f"segmentation {method} {size[0]}x{size[1]}",
+                   f"{rate:.1f} img/s, IoU {score:.3f}", None, "")
     counts = (50, 200) if args.quick else (100, 1000)
     print(f"\npeak memory of render_sequence (look none, 128x128, {backends[0]}), tracemalloc:")
     peaks = []
