@@ -19,8 +19,9 @@ $(TEST_STAMP): $(STAMP)
 	bash scripts/setup.sh --test
 	touch $(TEST_STAMP)
 
+# ARGS: more `pipeline run` arguments, e.g. make run ARGS='--profile ci' (the tests run it so)
 run: setup
-	.venv/bin/pipeline run --executor process
+	.venv/bin/pipeline run --executor process $(ARGS)
 
 test: setup-test
 	$(PY) -m pytest -q
