@@ -1,6 +1,8 @@
 """Small helpers every science package shares."""
 from __future__ import annotations
 
+import contextlib
+import os
 from typing import Mapping
 
 
@@ -11,3 +13,28 @@ def attrs_of(art) -> dict:
     if attrs is None and isinstance(art, Mapping):
         attrs = art.get("attrs", {})
     return dict(attrs or {})
+
+
+def default_threads() -> int:
+    """Torch threads for training and inference: $GENFORCE_TORCH_THREADS, else 1.
+
+    Fixed, not the machine's core count, so that a node's result does not depend on the
+    executor it ran in (torch's float reductions change with the thread count, and a model
+    trained on 2 threads differs from one trained on 1).  One is also the fastest choice when
+    the pipeline shares 2 cores between nodes: measured by benchmarks/force.py while other
+    processes were busy, a second thread made training 10x slower (busy-waiting OpenMP
+    threads), and on an idle machine it gains at most ~1.5x."""
+    env = os.environ.get("GENFORCE_TORCH_THREADS", "").strip()
+    return max(1, int(env)) if env else 1
+
+
+@contextlib.contextmanager
+def torch_threads(n: int | None = None):
+    """Run torch on `n` threads (default: :func:`default_threads`), restoring the setting afterwards."""
+    import torch
+    old = torch.get_num_threads()
+    torch.set_num_threads(max(1, int(n or default_threads())))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)

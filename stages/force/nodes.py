@@ -193,7 +193,7 @@ def force_study(*, study: str, pairs: Sequence[Sequence[str]], own: Mapping[str,
     arrays mae/<method> (pairs, 4: fx, fy, fz, total), r2/<method> (pairs, 3), pairs
     ("source_target"), sources, targets, trace/*; figures radar (MAE), r2_hist, trace, violin.
     """
-    from stages.force.train import torch_threads
+    from stages.common import torch_threads
     with torch_threads():
         return _force_study(study, pairs, own, transfer, markers, test_indenters, trace_frames)
 

@@ -17,8 +17,6 @@ Two-stage schedules (pretrain, then fine-tune) are two :func:`fit` calls, the se
 """
 from __future__ import annotations
 
-import contextlib
-import os
 import time
 from dataclasses import dataclass
 from typing import Mapping, Sequence
@@ -27,6 +25,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from stages.common import torch_threads
 from stages.force.model import ForceRegressor, from_arrays, model_config, prepare, to_arrays
 
 
@@ -48,27 +47,6 @@ def make_sequences(images_per_contact: Sequence, forces_per_contact: Sequence, r
             raise ValueError(f"a contact has {len(images)} images but forces of shape {force.shape}")
         out.append(ContactSequence(prepare(images, reference, config), force))
     return out
-
-
-def default_threads() -> int:
-    """Torch threads for force training and prediction: $GENFORCE_TORCH_THREADS, else 1.
-
-    One thread is the default because the pipeline shares 2 cores between nodes: measured by
-    benchmarks/force.py while other processes were busy, a second thread made training 10x
-    slower (busy-waiting OpenMP threads), and on an idle machine it gains at most ~1.5x."""
-    env = os.environ.get("GENFORCE_TORCH_THREADS", "").strip()
-    return max(1, int(env)) if env else 1
-
-
-@contextlib.contextmanager
-def torch_threads(n: int | None = None):
-    """Run torch on `n` threads (default: :func:`default_threads`), restoring the setting afterwards."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(max(1, int(n or default_threads())))
-    try:
-        yield
-    finally:
-        torch.set_num_threads(old)
 
 
 def _window(rng: np.random.Generator, length: int, seq_len: int) -> tuple[int, int]:

@@ -18,7 +18,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from stages.figures import contact_sheet, figure_png, png
-from stages.common import attrs_of
+from stages.common import attrs_of, torch_threads
 from stages.m2m.data import LABEL_KEYS, eval_frame_indices, paired_table, read_rows
 
 CHUNK = 64              # frames per streamed chunk
@@ -72,15 +72,17 @@ def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_
     from stages.m2m.train import PairBatches, fit
     frames, rows = paired_table(markers, skins, train_indenters, per_skin)
     images, refs = _paired_arrays(markers, skins, rows, config["size"])
-    hist = fit(net, config, PairBatches(images, refs, seed), steps=int(steps),
-               batch_size=int(batch_size), lr=float(lr), seed=int(seed), progress=title)
-    weights = state_arrays(net)
+    with torch_threads():
+        hist = fit(net, config, PairBatches(images, refs, seed), steps=int(steps),
+                   batch_size=int(batch_size), lr=float(lr), seed=int(seed), progress=title)
+        weights = state_arrays(net)
+        samples = _samples_sheet(Translator(config, weights), images, refs, seed)
     tail = hist["loss"][-max(1, len(hist["loss"]) // 20):]
     return {
         "weights": weights,
         "loss": hist["loss"],
         "figures": {"loss": figure_png(_loss_figure(hist["loss"], title)),
-                    "samples": png(_samples_sheet(Translator(config, weights), images, refs, seed))},
+                    "samples": png(samples)},
         "attrs": {"config": config, "skins": list(skins), "train_indenters": list(train_indenters),
                   "pairs": int(len(frames)), "steps": int(steps), "batch_size": int(batch_size),
                   "lr": float(lr), "seed": int(seed), "seconds": round(hist["seconds"], 2),
@@ -182,8 +184,10 @@ def translate_sequence(*, model, source_markers, target_markers, eval_indenters:
     translator = load_translator(model)
     src_ref = np.asarray(source_markers["reference"], np.uint8)
     tgt_ref = np.asarray(target_markers["reference"], np.uint8)
-    result = yield from _stream(source_markers, target_markers, eval_indenters, n_eval,
-                                lambda im: translator.translate(im, src_ref, tgt_ref, int(sampler_steps)), "m2m")
+    with torch_threads():
+        result = yield from _stream(source_markers, target_markers, eval_indenters, n_eval,
+                                    lambda im: translator.translate(im, src_ref, tgt_ref, int(sampler_steps)),
+                                    "m2m")
     result["attrs"].update(sampler_steps=int(sampler_steps), source=source, target=target)
     return result
 
@@ -205,7 +209,9 @@ def image_features(*, markers, eval_indenters: list[str], n_eval: int, skin: str
     """Node features[skin]: InceptionV3 features (n,2048) of the skin's evaluation frames."""
     from stages.imagemetrics import inception_features
     rows = eval_frame_indices(markers, eval_indenters, n_eval)
-    return {"features": inception_features(read_rows(markers["images"], rows), progress="features"),
+    with torch_threads():
+        features = inception_features(read_rows(markers["images"], rows), progress="features")
+    return {"features": features,
             "eval_frames": np.asarray(markers["frame"])[rows].astype(np.int64),
             "attrs": {"n_eval": int(len(rows)), "eval_indenters": list(eval_indenters)}}
 
