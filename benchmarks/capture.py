@@ -22,7 +22,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import numpy as np                                                        # noqa: E402
 import yaml                                                               # noqa: E402
 
-from benchmarks.summary import record                                     # noqa: E402
+from benchmarks.summary import drain, record                                     # noqa: E402
 from stages.capture.devices import Robot                                  # noqa: E402
 from stages.capture.emulators import Emulators                            # noqa: E402
 from stages.capture.poses import to_pose                                  # noqa: E402
@@ -39,14 +39,6 @@ def params():
     ci = yaml.safe_load(open(os.path.join(ROOT, "params", "ci.yaml")))
     p["sensors"]["gelsight-r10"].update(ci["sensors"]["gelsight-r10"])
     return p
-
-
-def drain(gen):
-    while True:
-        try:
-            next(gen)
-        except StopIteration as stop:
-            return stop.value
 
 
 def run(traj, meshes, p, devices, rate_hz=0.0, **device_params):

@@ -1,4 +1,4 @@
-"""Figures a benchmark hands to benchmarks/run_all.py for its summary table.
+"""Figures a benchmark hands to benchmarks/run_all.py for its summary table, and `drain`.
 
 `record` appends one JSON line to the file named by the BENCH_SUMMARY environment variable;
 without it (a benchmark run on its own) it does nothing.
@@ -18,3 +18,12 @@ def record(bench: str, name: str, measured: str, ratio: float | None, target: st
            "ratio": None if ratio is None else float(ratio), "target": target}
     with open(path, "a") as f:
         f.write(json.dumps(row) + "\n")
+
+
+def drain(gen):
+    """Run a streaming node (a generator) to the end, dropping its chunks: its returned value."""
+    while True:
+        try:
+            next(gen)
+        except StopIteration as stop:
+            return stop.value

@@ -306,28 +306,18 @@ def test_node_camera_look_outputs_raw_and_references():
             "light": [[0.7, 0.1, 0.1], [0.1, 0.7, 0.1], [0.1, 0.1, 0.7]]}
     gen = render_sequence(deform=deform, patterns=flat, skin="gelsight-A-I", spec=spec,
                           size=[48, 40], spp=1, backend="auto")
-    chunks = list(_drain(gen))
-    final = chunks.pop()
+    chunks, final = drain(gen)
     assert chunks[0]["raw"].shape == (3, 48, 40, 3) and chunks[0]["truth"].shape == (3, 48, 40)
     assert final["raw_reference"].shape == (48, 40, 3) and final["truth_reference"].shape == (48, 40)
     assert np.array_equal(final["truth_reference"], chunks[0]["truth"][0])
     assert final["attrs"]["noise"] == 2.0
-    again = list(_drain(render_sequence(deform=deform, patterns=flat, skin="gelsight-A-I", spec=spec,
-                                        size=[48, 40], spp=1, backend="auto")))
+    again, _ = drain(render_sequence(deform=deform, patterns=flat, skin="gelsight-A-I", spec=spec,
+                                     size=[48, 40], spp=1, backend="auto"))
     assert np.array_equal(again[0]["raw"], chunks[0]["raw"])             # seeded noise
     with pytest.raises(KeyError, match="Array9"):
         next(render_sequence(deform=deform, patterns=flat, skin="s", spec={**spec, "pattern": "Array9"},
                              size=[8, 8], spp=1, backend="auto"))
     assert marker_set(flat, "gelsight-A-I").pad_size_mm == (25.0, 25.0)
-
-
-def _drain(gen):
-    while True:
-        try:
-            yield next(gen)
-        except StopIteration as stop:
-            yield stop.value
-            return
 
 
 if __name__ == "__main__":
