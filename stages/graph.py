@@ -22,8 +22,9 @@ GRAPH.node("collection_trajectory", "stages.sim.trajectory:collection_trajectory
            description="the real-collection protocol: 5 points, depth steps, 8 shear directions")
 GRAPH.node("calibration_trajectory", "stages.sim.trajectory:calibration_trajectory",
            params={k: f"calibration_trajectory.{k}" for k in (
-               "max_depth_mm", "n_steps", "repetitions", "indenter", "rate_hz")},
-           description="3 indentations to d_max and back, for material compensation")
+               "max_depth_mm", "n_steps", "repetitions", "indenter", "rate_hz", "shear_mm",
+               "shear_steps")},
+           description="3 indentations to d_max, a shear leg and back, for material compensation")
 
 # -- marker representation ----------------------------------------------------------------
 GRAPH.node("patterns", "stages.markers.patterns:reference_set",
@@ -140,7 +141,7 @@ GRAPH.node("transfer", "stages.force.nodes:fit_transfer",
            inputs={"translated": "translate[source={source},target={target}]",
                    "source_calibration": "calibrate[sensor={source_spec[sensor]}]",
                    "target_calibration": "calibrate[sensor={target_spec[sensor]}]"},
-           params={**_FIT, "finetune_steps": "force.finetune_steps",
+           params={**_FIT, "finetune_steps": "force.finetune_steps", "compensation": "force.compensation",
                    "train_indenters": "splits.train_indenters",
                    "source_spec": "skins.{source}", "target_spec": "skins.{target}"},
            grid={"source,target": _TRANSFER_PAIRS},

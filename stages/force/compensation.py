@@ -17,11 +17,18 @@ is computed in this divided form at every depth and small depths need no special
 slope a d + b past the calibrated range (d > 1), where a fitted curve may bend down to zero:
 both slopes are clamped to at least eps.
 
-All three axes are scaled by the normal-force ratio, as in the paper (friction differences
-between elastomers are not modelled).  Which curve a frame uses: phase 0 (press) loading;
-phases 1 and 2 (shear out and back, at constant depth right after pressing) loading too, since
-the elastomer has not been unloaded (the simulation twin uses the loading stiffness there);
-phase 3 (release) unloading.
+Shear: the paper scales all three axes by the normal-force ratio (mode "normal"), which holds
+while the sensors' shear-to-normal force ratios agree (one elastomer family: GelSight r6 and
+r18 differ by 10%).  Across sensor kinds they do not (the TacTip twin's dome shears at about a
+third of GelSight's ratio), so mode "axes" also scales Fx, Fy by the ratio of the two sensors'
+shear gains: a calibration with a shear leg at d_max (calibration_trajectory shear_mm) gives
+gain = sum |F_xy| / sum |F_z| over its shear-out frames, and shear labels are scaled by
+r(d) * gain_target / gain_source.  Without a shear leg on both sides "axes" is "normal".
+
+Which curve a frame uses: phase 0 (press) loading; phases 1 and 2 (shear out and back, at
+constant depth right after pressing) loading too, since the elastomer has not been unloaded
+(the simulation twin uses the loading stiffness there); phase 3 (release) unloading.  A
+calibration's own shear leg is left out of its curves.
 """
 from __future__ import annotations
 
@@ -32,21 +39,27 @@ import numpy as np
 
 PHASES = (0, 1, 2, 3)          # press, shear out, shear back, release
 UNLOADING_PHASES = (3,)
+MODES = ("normal", "axes")
 
 
 @dataclass(frozen=True)
 class Curves:
     """One sensor's calibration: polynomial coefficients (a, b, 0), highest power first
-    (np.polyval order), of |Fz| against normalised depth for each branch."""
+    (np.polyval order), of |Fz| against normalised depth for each branch, and the shear gain
+    (|F_xy| / |F_z| on the shear leg; None without one)."""
     loading: tuple[float, float, float]
     unloading: tuple[float, float, float]
+    shear_gain: float | None = None
 
     def as_dict(self) -> dict:
-        return {"loading": list(self.loading), "unloading": list(self.unloading)}
+        return {"loading": list(self.loading), "unloading": list(self.unloading),
+                "shear_gain": self.shear_gain}
 
     @classmethod
     def from_dict(cls, d: Mapping) -> "Curves":
-        return cls(tuple(float(v) for v in d["loading"]), tuple(float(v) for v in d["unloading"]))
+        gain = d.get("shear_gain")
+        return cls(tuple(float(v) for v in d["loading"]), tuple(float(v) for v in d["unloading"]),
+                   None if gain is None else float(gain))
 
     def force(self, normalised_depth, loading) -> np.ndarray:
         """|Fz| the curves predict at each depth, loading or unloading branch per frame."""
@@ -65,9 +78,10 @@ def _fit_branch(d: np.ndarray, f: np.ndarray, name: str) -> tuple[float, float, 
     return (float(a), float(b), 0.0)
 
 
-def fit_curves(normalised_depth, force, loading) -> Curves:
+def fit_curves(normalised_depth, force, loading, phase=None) -> Curves:
     """Fit the loading and unloading curves of a calibration (calibrate artifact arrays:
-    normalised_depth (N,), force (N,3) N, loading (N,) bool)."""
+    normalised_depth (N,), force (N,3) N, loading (N,) bool, and phase (N,) if it has a shear
+    leg: phases 1-2 then give the shear gain and stay out of the curves)."""
     d = np.asarray(normalised_depth, float)
     force = np.asarray(force, float)
     loading = np.asarray(loading, bool)
@@ -75,14 +89,27 @@ def fit_curves(normalised_depth, force, loading) -> Curves:
         raise ValueError(f"fit_curves: normalised_depth {d.shape}, force {force.shape}, loading "
                          f"{loading.shape} must be (N,), (N,3), (N,)")
     f = np.abs(force[:, 2])
-    return Curves(_fit_branch(d[loading], f[loading], "loading"),
-                  _fit_branch(d[~loading], f[~loading], "unloading"))
+    press, gain = loading, None
+    if phase is not None:
+        phase = np.asarray(phase)
+        if phase.shape != d.shape:
+            raise ValueError(f"fit_curves: phase {phase.shape} and normalised_depth {d.shape} differ")
+        press = loading & (phase == 0)
+        out = phase == 1
+        if out.any():
+            normal = f[out].sum()
+            if not normal > 0:
+                raise ValueError("fit_curves: the shear leg has no normal force: no shear gain")
+            gain = float(np.hypot(force[out, 0], force[out, 1]).sum() / normal)
+    return Curves(_fit_branch(d[press], f[press], "loading"),
+                  _fit_branch(d[~loading], f[~loading], "unloading"), gain)
 
 
 def curves_from_calibration(calibration: Mapping) -> Curves:
     """Curves of a calibrate[sensor] artifact (or a dict with the same arrays)."""
     return fit_curves(np.asarray(calibration["normalised_depth"]), np.asarray(calibration["force"]),
-                      np.asarray(calibration["loading"]))
+                      np.asarray(calibration["loading"]),
+                      np.asarray(calibration["phase"]) if "phase" in calibration else None)
 
 
 def loading_mask(phase) -> np.ndarray:
@@ -108,21 +135,35 @@ def label_scale(normalised_depth, loading, source: Curves, target: Curves, eps: 
     return slope(target) / slope(source)
 
 
+def shear_ratio(source: Curves, target: Curves, mode: str) -> float:
+    """The extra factor on Fx, Fy: gain_target / gain_source in mode "axes" when both
+    calibrations have a shear leg, else 1 (the paper's "normal" mode)."""
+    if mode not in MODES:
+        raise ValueError(f"compensation mode {mode!r} is not one of {MODES}")
+    if mode == "normal" or source.shear_gain is None or target.shear_gain is None:
+        return 1.0
+    if not (source.shear_gain > 0 and target.shear_gain > 0):
+        raise ValueError(f"shear gains {source.shear_gain} / {target.shear_gain} must be positive")
+    return target.shear_gain / source.shear_gain
+
+
 def compensate(force, normalised_depth, loading, source: Curves, target: Curves,
-               eps: float = 1e-6) -> np.ndarray:
-    """Source labels rescaled to the target's material: force (N,3) * r(d) per frame.
+               eps: float = 1e-6, *, mode: str = "normal") -> np.ndarray:
+    """Source labels rescaled to the target's material: Fz * r per frame, Fx and Fy * r times
+    shear_ratio (mode "axes"; "normal" scales them by r like Fz, the paper's).
 
     Identical source and target curves return the labels unchanged (bit for bit).
     """
     force = np.asarray(force)
     if force.ndim != 2 or force.shape[1] != 3:
         raise ValueError(f"compensate: force must be (N,3), got {force.shape}")
+    shear = shear_ratio(source, target, mode)
     if source == target:
         return force.copy()
     scale = label_scale(normalised_depth, loading, source, target, eps)
     if scale.shape != force.shape[:1]:
         raise ValueError(f"compensate: {force.shape[0]} forces but {scale.shape[0]} depths")
-    return (force * scale[:, None]).astype(force.dtype)
+    return (force * scale[:, None] * np.array([shear, shear, 1.0])).astype(force.dtype)
 
 
 def curves_figure(calibrations: Mapping[str, tuple[Mapping, Curves]], title: str):
@@ -138,8 +179,11 @@ def curves_figure(calibrations: Mapping[str, tuple[Mapping, Curves]], title: str
         colour = f"C{k}"
         d, f = np.asarray(cal["normalised_depth"]), np.abs(np.asarray(cal["force"])[:, 2])
         load = np.asarray(cal["loading"], bool)
+        if "phase" in cal:                      # a shear leg is not on the curves
+            load &= np.asarray(cal["phase"]) == 0
         ax.plot(d[load], f[load], ".", color=colour, ms=3, alpha=0.6)
-        ax.plot(d[~load], f[~load], "x", color=colour, ms=3, alpha=0.6)
+        unload = ~np.asarray(cal["loading"], bool)
+        ax.plot(d[unload], f[unload], "x", color=colour, ms=3, alpha=0.6)
         ax.plot(grid, np.polyval(curves.loading, grid), "-", color=colour, label=f"{name} loading")
         ax.plot(grid, np.polyval(curves.unloading, grid), "--", color=colour, label=f"{name} unloading")
     ax.set(xlabel="normalised depth", ylabel="|Fz| (N)", title=title)

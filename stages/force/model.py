@@ -29,7 +29,12 @@ Fx / Fy / Fz in N:
     stack        0.23 / 0.22 / 0.74    3.69 / 1.17 / 14.1
 
 Outputs are min-max normalised per axis over [force_min, force_max] (labels outside are
-clipped), so the sigmoid's range is the force range.  The model carries a ``reference`` buffer:
+clipped), so the sigmoid's range is the force range.  force_min = force_max = "auto" (the
+paper's min-max normalisation of the training labels) has train.fit set the range from the
+labels it trains on, widened by AUTO_MARGIN of the span on each side; the fitted range is
+part of the stored config.  Sensors differ a lot in range (TacTip shear within +-1 N, uSkin
+normal force to -56 N), so a fixed range either clips one or leaves another a sliver of the
+sigmoid.  The model carries a ``reference`` buffer:
 the no-contact image of the sensor it was trained for, used when no reference is passed at
 prediction time.  Weights serialise to plain arrays (:func:`to_arrays` / :func:`from_arrays`).
 """
@@ -55,6 +60,8 @@ DEFAULT_CONFIG = {
     "force_max": [5.0, 5.0, 5.0],
 }
 INPUT_MODES = ("difference", "stack")
+AUTO = "auto"
+AUTO_MARGIN = 0.05          # auto range: label min/max widened by this share of the span
 
 
 def model_config(config: Mapping | None = None) -> dict:
@@ -71,6 +78,16 @@ def model_config(config: Mapping | None = None) -> dict:
     if int(out["input_size"]) % down:
         raise ValueError(f"input_size {out['input_size']} must be a multiple of {down} "
                          f"(the encoder's {len(out['encoder_channels'])} stride-2 stages after the stem)")
+    auto = [out[k] == AUTO if isinstance(out[k], str) else False for k in ("force_min", "force_max")]
+    if any(auto):
+        if not all(auto):
+            raise ValueError(f"force_min {out['force_min']!r} / force_max {out['force_max']!r}: "
+                             f"both {AUTO!r} or neither")
+        out["input_size"], out["hidden"] = int(out["input_size"]), int(out["hidden"])
+        return out
+    if any(isinstance(out[k], str) for k in ("force_min", "force_max")):
+        raise ValueError(f"force_min {out['force_min']!r} / force_max {out['force_max']!r}: "
+                         f"3 numbers each or {AUTO!r}")
     lo, hi = np.asarray(out["force_min"], float), np.asarray(out["force_max"], float)
     if lo.shape != (3,) or hi.shape != (3,) or np.any(hi <= lo):
         raise ValueError(f"force_min {out['force_min']} / force_max {out['force_max']}: "
@@ -79,6 +96,24 @@ def model_config(config: Mapping | None = None) -> dict:
     out["hidden"] = int(out["hidden"])
     out["force_min"], out["force_max"] = lo.tolist(), hi.tolist()
     return out
+
+
+def resolve_range(config: Mapping, force) -> dict:
+    """The config with an "auto" force range set from labels `force` (N,3): per axis
+    min - AUTO_MARGIN * span .. max + AUTO_MARGIN * span (an axis spanning under 1 mN gets
+    +-0.5 N around its value).  A numeric range is returned unchanged."""
+    config = model_config(config)
+    if config["force_min"] != AUTO:
+        return config
+    f = np.asarray(force, float).reshape(-1, 3)
+    if not f.size or not np.all(np.isfinite(f)):
+        raise ValueError("force range 'auto': the training labels are empty or not finite")
+    lo, hi = f.min(0), f.max(0)
+    span = hi - lo
+    narrow = span < 1e-3
+    pad = np.where(narrow, 0.5, AUTO_MARGIN * span)
+    return model_config({**config, "force_min": (lo - pad).round(6).tolist(),
+                         "force_max": (hi + pad).round(6).tolist()})
 
 
 # ---------------------------------------------------------------------------- layers
@@ -138,6 +173,9 @@ class ForceRegressor(nn.Module):
         super().__init__()
         self.config = model_config(config)
         c = self.config
+        if c["force_min"] == AUTO:
+            raise ValueError("force range 'auto' is set from the training labels "
+                             "(stages.force.train.fit, or model.resolve_range) before a model is built")
         c_in = 1 if c["input_mode"] == "difference" else 2
         hidden = c["hidden"]
         self.encoder = Encoder(c_in, int(c["stem_channels"]), c["encoder_channels"], hidden)

@@ -99,6 +99,7 @@ def fit_own(*, markers: Mapping, skin: str, train_indenters: Sequence[str], conf
 def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_calibration: Mapping,
                  source: str, target: str, config: Mapping, steps: int, batch_size: int, lr: float,
                  seed: int, finetune_steps: int, train_indenters: Sequence[str] | None = None,
+                 compensation: str = "normal",
                  source_spec: Mapping | None = None, target_spec: Mapping | None = None) -> dict:
     """Node `transfer[source,target]`: regressors on the source's sequences translated into the
     target's style (images; reference = the target's), trained with the source's labels
@@ -110,16 +111,16 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     `finetune_steps` at lr * finetune_lr_factor on the same contacts and labels (the paper's
     lr 0.1 then 1e-3; 0 skips it).  When the two calibrations give the same curves (same
     material) the compensation is the identity and genforce_comp is genforce's weights, not
-    retrained (attrs compensation_identity true).
+    retrained (attrs compensation_identity true).  `compensation` is the mode of
+    stages.force.compensation: "normal" (the paper's) or "axes" (shear gains too).
     """
     from stages.force.compensation import (compensate, curves_figure, curves_from_calibration,
-                                           label_scale, loading_mask)
+                                           label_scale, loading_mask, shear_ratio)
     from stages.force.model import to_arrays
     from stages.force.train import ContactSequence, fit_two_stage, loss_figure, make_sequences
     model_cfg, train = _split_config(config)
     src_curves = curves_from_calibration(source_calibration)
     tgt_curves = curves_from_calibration(target_calibration)
-    identity = src_curves == tgt_curves
     runs = contact_runs(translated, train_indenters)
     if not runs:
         raise ValueError(f"fit_transfer[{source}->{target}]: no translated contacts to train on")
@@ -127,7 +128,8 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     force = np.asarray(translated["force"], np.float32)
     depth = np.asarray(translated["normalised_depth"], float)
     loading = loading_mask(np.asarray(translated["phase"]))
-    comp = compensate(force, depth, loading, src_curves, tgt_curves)
+    identity = src_curves == tgt_curves
+    comp = compensate(force, depth, loading, src_curves, tgt_curves, mode=compensation)
     seqs = make_sequences(_read_runs(translated, "images", runs), [force[a:b] for a, b in runs],
                           reference, model_cfg)
     kwargs = dict(steps=int(steps), finetune_steps=int(finetune_steps), batch_size=int(batch_size),
@@ -138,6 +140,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     genforce.set_reference(reference)
     weights = to_arrays(genforce)
     histories = {"genforce": hist}
+    models = {"genforce": genforce}
     if identity:
         weights_comp = {k: v.copy() for k, v in weights.items()}
     else:
@@ -146,6 +149,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
             comp_seqs, model_cfg, desc=f"{name} genforce_comp", **kwargs)
         genforce_comp.set_reference(reference)
         weights_comp = to_arrays(genforce_comp)
+        models["genforce_comp"] = genforce_comp
     rows = np.concatenate([np.arange(a, b) for a, b in runs])
     scale = (np.ones(rows.size) if identity else
              label_scale(depth[rows], loading[rows], src_curves, tgt_curves))
@@ -155,7 +159,10 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
                                              f"compensation {source} -> {target}")}
     return {"genforce": weights, "genforce_comp": weights_comp,
             "attrs": {"config": genforce.config, "train": train, "source": source, "target": target,
-                      "compensation_identity": bool(identity),
+                      "compensation_identity": bool(identity), "compensation": compensation,
+                      "shear_ratio": shear_ratio(src_curves, tgt_curves, compensation),
+                      "force_range": {m: {"min": mdl.config["force_min"], "max": mdl.config["force_max"]}
+                                      for m, mdl in models.items()},
                       "curves": {"source": src_curves.as_dict(), "target": tgt_curves.as_dict()},
                       "label_scale": {"mean": float(scale.mean()), "min": float(scale.min()),
                                       "max": float(scale.max())},

@@ -26,7 +26,8 @@ import torch
 from tqdm import tqdm
 
 from stages.common import torch_threads
-from stages.force.model import ForceRegressor, from_arrays, model_config, prepare, to_arrays
+from stages.force.model import (ForceRegressor, from_arrays, model_config, prepare, resolve_range,
+                                to_arrays)
 
 
 @dataclass
@@ -87,18 +88,18 @@ def fit(sequences: list[ContactSequence], config: Mapping | None = None, *, step
     """Train a regressor; returns (model in eval mode, history).
 
     ``init`` is a :func:`to_arrays` dict to start from (fine-tuning); its config must equal
-    ``config``.  history: loss (per step, normalised L1), seconds, samples_per_s (contact
+    ``config``.  An "auto" force range is set from the sequences' labels (model.resolve_range).  history: loss (per step, normalised L1), seconds, samples_per_s (contact
     windows), frames_per_s, clipped_fraction (labels outside the force range).
     """
     if not sequences:
         raise ValueError("fit: no training contact sequences")
     if steps < 0 or batch_size < 1 or seq_len < 1:
         raise ValueError(f"fit: steps {steps}, batch_size {batch_size}, seq_len {seq_len} out of range")
-    config = model_config(config)
+    all_force = np.concatenate([s.force for s in sequences])
+    config = resolve_range(config, all_force)
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     model = from_arrays(init, config) if init is not None else ForceRegressor(config)
-    all_force = np.concatenate([s.force for s in sequences])
     lo, hi = np.asarray(config["force_min"]), np.asarray(config["force_max"])
     clipped = float(np.mean(np.any((all_force < lo) | (all_force > hi), axis=1)))
     targets = [model.normalise(s.force) for s in sequences]

@@ -161,13 +161,13 @@ def deform_sequence(*, indenters: Mapping, sim_trajectory: Mapping, collection_t
                       "depth_scale": scale, "frames": int(frames.size)}}
 
 
-def _force_depth_png(normalised, force, loading, repetition, title) -> np.ndarray:
+def _force_depth_png(normalised, force, phase, repetition, title) -> np.ndarray:
     from matplotlib.figure import Figure
     fig = Figure(figsize=(4.5, 3.5))
     ax = fig.add_subplot()
     for rep in np.unique(repetition):
-        for mask, style, colour, label in ((loading, "-", "C0", "loading"),
-                                           (~loading, "--", "C1", "unloading")):
+        for mask, style, colour, label in ((phase == 0, "-", "C0", "loading"),
+                                           (phase == 3, "--", "C1", "unloading")):
             m = mask & (repetition == rep)
             ax.plot(normalised[m], -force[m, 2], style, color=colour, marker=".", ms=3, lw=0.8,
                     label=label if rep == repetition[0] else None)
@@ -185,7 +185,8 @@ def calibrate(*, indenters: Mapping, trajectory: Mapping, sensor: str, spec: Map
     (GelSight 1.4 mm, the paper's d_max; TacTip 4.5 mm; uSkin 1 mm, the paper's
     heterogeneous calibration), so every sensor's curve spans normalised depth 0..1.
     Returns depth (N,) mm, normalised_depth (N,), force (N,3) float32, loading (N,) bool,
-    repetition (N,) int32, and figures/force_depth.
+    repetition (N,) int32, phase (N,) int8 and shift (N,2) mm (the trajectory's, non-zero on
+    its shear leg if it has one), and figures/force_depth.
     """
     t = _arrays(trajectory, _FRAME_KEYS + ("loading", "normalised_depth"))
     material = material_of(spec, materials)
@@ -206,7 +207,8 @@ def calibrate(*, indenters: Mapping, trajectory: Mapping, sensor: str, spec: Map
     loading, repetition = t["loading"].astype(bool), t["contact_id"].astype(np.int32)
     indenter = str(names[t["indenter_id"][0]])
     return {"depth": t["depth"], "normalised_depth": normalised, "force": force, "loading": loading,
-            "repetition": repetition,
-            "figures": {"force_depth": _force_depth_png(normalised, force, loading, repetition,
+            "repetition": repetition, "phase": t["phase"].astype(np.int8),
+            "shift": t["shift"].astype(np.float32),
+            "figures": {"force_depth": _force_depth_png(normalised, force, t["phase"], repetition,
                                                         f"{sensor}: calibration ({indenter})")},
             "attrs": {**sensor_attrs(sensor, spec, material), "indenter": indenter}}

@@ -7,11 +7,12 @@ import pytest
 import torch
 from sklearn.metrics import mean_absolute_error, r2_score
 
-from stages.force.compensation import (Curves, compensate, fit_curves, label_scale, loading_mask)
+from stages.force.compensation import (Curves, compensate, fit_curves, label_scale, loading_mask,
+                                       shear_ratio)
 from stages.force.metrics import METRICS, force_metrics
 from stages.force.model import (ForceRegressor, StreamingPredictor, from_arrays, load_model,
                                 load_predictor, model_config, predict_contacts, predict_sequence,
-                                to_arrays)
+                                resolve_range, to_arrays)
 from stages.force.nodes import METHODS, contact_runs, fit_own, fit_transfer, force_study
 from stages.force.train import fit, make_sequences
 
@@ -91,6 +92,28 @@ def test_config_validation_and_label_clipping():
     assert model.encoder.stem[0].in_channels == 2
 
 
+def test_auto_force_range_from_the_training_labels(blobs, tiny_config):
+    force = np.array([[-1.0, 0.2, -10.0], [3.0, 0.2, 0.0]])
+    cfg = resolve_range({"force_min": "auto", "force_max": "auto"}, force)
+    np.testing.assert_allclose(cfg["force_min"], [-1.2, -0.3, -10.5])   # 5% of the span; a
+    np.testing.assert_allclose(cfg["force_max"], [3.2, 0.7, 0.5])       # constant axis +-0.5 N
+    assert resolve_range({"force_min": [-1, -1, -1], "force_max": [1, 1, 1]}, force)["force_max"] == [1, 1, 1]
+    with pytest.raises(ValueError, match="both 'auto' or neither"):
+        model_config({"force_min": "auto"})
+    with pytest.raises(ValueError, match="set from the training labels"):
+        ForceRegressor({"force_min": "auto", "force_max": "auto"})
+    with pytest.raises(ValueError, match="not finite"):
+        resolve_range({"force_min": "auto", "force_max": "auto"}, [[0.0, np.nan, 1.0]])
+    images, forces = blobs(4, seed=5)
+    auto = {**tiny_config, "force_min": "auto", "force_max": "auto"}
+    model, _ = fit(make_sequences(images, forces, REF, auto), auto, steps=1, batch_size=2, lr=0.01)
+    labels = np.concatenate(forces)
+    span = labels.max(0) - labels.min(0)
+    np.testing.assert_allclose(model.force_min.numpy(), labels.min(0) - 0.05 * span, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(model.config["force_max"], labels.max(0) + 0.05 * span, rtol=1e-4, atol=1e-5)
+    assert model.normalise(labels).min() >= 0.04 and model.normalise(labels).max() <= 0.96
+
+
 # ---------------------------------------------------------------------------- compensation
 
 def _calibration(scale, unload=0.8, n=20):
@@ -146,6 +169,38 @@ def test_loading_and_unloading_curves_by_phase():
                                [-3.0, -4.0, -2.0, -8.0, -8.0, -6.0])
     with pytest.raises(ValueError, match=r"\[5\]"):
         loading_mask([0, 5])
+
+
+def _sheared_calibration(scale, gain, n=10, m=4):
+    """_calibration's loading and unloading with a shear leg at d = 1 between them (phases 1,
+    2): |F_xy| = gain * |Fz| * j / m at step j of m out and back, Fz held."""
+    d, f, load = _calibration(scale, n=n)
+    fz1 = f[n - 1, 2]
+    j = np.r_[np.arange(1, m + 1), np.arange(m - 1, -1, -1)] / m
+    leg = np.c_[gain * abs(fz1) * j * 0.6, gain * abs(fz1) * j * 0.8, np.full(2 * m, fz1)]
+    phase = np.r_[np.zeros(n), np.ones(m), np.full(m, 2), np.full(n, 3)].astype(np.int8)
+    return (np.r_[d[:n], np.ones(2 * m), d[n:]], np.r_[f[:n], leg, f[n:]],
+            np.r_[load[:n], np.ones(2 * m, bool), load[n:]], phase)
+
+
+def test_shear_gain_and_axes_mode():
+    src = fit_curves(*_sheared_calibration(1.0, gain=0.5))
+    tgt = fit_curves(*_sheared_calibration(2.0, gain=0.1))
+    # gain: sum |F_xy| / sum |Fz| over the shear-out frames; the leg is not on the curves
+    assert src.shear_gain == pytest.approx(0.5 * np.mean([1, 2, 3, 4]) / 4)
+    np.testing.assert_allclose(src.loading, [1.0, 2.0, 0.0], atol=1e-9)
+    assert fit_curves(*_calibration(1.0)).shear_gain is None
+    assert shear_ratio(src, tgt, "axes") == pytest.approx(0.2)
+    assert shear_ratio(src, tgt, "normal") == 1.0
+    assert shear_ratio(src, fit_curves(*_calibration(2.0)), "axes") == 1.0     # no leg: normal
+    with pytest.raises(ValueError, match="'both'"):
+        shear_ratio(src, tgt, "both")
+    force = np.array([[1.0, -2.0, -4.0]], np.float32)
+    depth, loading = np.array([0.5]), np.array([True])
+    np.testing.assert_allclose(compensate(force, depth, loading, src, tgt, mode="axes"),
+                               [[0.4, -0.8, -8.0]], rtol=1e-6)       # r = 2; shear x 2 x 0.2
+    np.testing.assert_allclose(compensate(force, depth, loading, src, tgt), [[2.0, -4.0, -8.0]], rtol=1e-6)
+    assert Curves.from_dict(src.as_dict()) == src
 
 
 # ---------------------------------------------------------------------------- metrics
@@ -243,6 +298,32 @@ def test_fit_transfer_identity_copies_genforce(nodes_out):
     assert any(not np.array_equal(v, stiffer["genforce_comp"][k]) for k, v in stiffer["genforce"].items())
     assert bytes(stiffer["figures"]["compensation"][:8]) == PNG
     json.dumps(stiffer["attrs"])
+
+
+def test_fit_transfer_axes_mode_and_auto_ranges(skins, tiny_config):
+    """Mode "axes" with shear legs scales the shear labels by the gain ratio (attrs
+    shear_ratio); each model's auto force range follows its own labels."""
+    kw = dict(config={**tiny_config, "seq_len": 10, "force_min": "auto", "force_max": "auto"},
+              steps=2, batch_size=2, lr=0.05, seed=0, finetune_steps=0, train_indenters=["sphere"],
+              source="B", target="A", translated=skins["A"])
+    cal = {}
+    for name, (scale, gain) in {"s": (1.0, 0.5), "t": (2.0, 0.1)}.items():
+        d, f, load, phase = _sheared_calibration(scale, gain)
+        cal[name] = {"normalised_depth": d, "force": f, "loading": load, "phase": phase}
+    out = fit_transfer(source_calibration=cal["s"], target_calibration=cal["t"], compensation="axes", **kw)
+    assert out["attrs"]["shear_ratio"] == pytest.approx(0.2)
+    rows = np.concatenate([np.arange(a, b) for a, b in contact_runs(skins["A"], ["sphere"])])
+    labels = skins["A"]["force"][rows].astype(float)
+    comp = compensate(labels, skins["A"]["normalised_depth"][rows], loading_mask(skins["A"]["phase"][rows]),
+                      fit_curves(*_sheared_calibration(1.0, 0.5)), fit_curves(*_sheared_calibration(2.0, 0.1)),
+                      mode="axes")
+    for method, y in (("genforce", labels), ("genforce_comp", comp)):
+        span = y.max(0) - y.min(0)
+        span = np.where(span < 1e-3, np.nan, span)
+        lo = np.array(out["attrs"]["force_range"][method]["min"])
+        np.testing.assert_allclose(lo, np.where(np.isnan(span), lo, y.min(0) - 0.05 * span), rtol=1e-4, atol=1e-5)
+    plain = fit_transfer(source_calibration=cal["s"], target_calibration=cal["t"], compensation="normal", **kw)
+    assert plain["attrs"]["shear_ratio"] == 1.0
 
 
 def test_force_study_metrics_and_figures(nodes_out, skins):

@@ -185,3 +185,22 @@ def test_contact_check_against_hertz(params):
     assert out["force_hertz"][1] == pytest.approx(4 / 3 * 1.45e5 / (1 - 0.45 ** 2) * 2 * 1.5 ** 1.5 * 1e-6)
     assert out["force_solver"][1] == pytest.approx(out["force_hertz"][1], rel=0.02)
     assert bytes(out["figures"]["hertz"][:8]) == PNG
+
+
+def test_calibrate_shear_leg(params, indenter_artifact):
+    """The shear leg drags the pad along +x at constant depth: |Fx| grows on the way out and
+    Fy stays ~0; the press and release frames, and so the curves, are those without a leg."""
+    from stages.force.compensation import curves_from_calibration
+    kw = dict(indenters=indenter_artifact, sensor="gelsight-r10", spec=params["sensors"]["gelsight-r10"],
+              materials=params["materials"])
+    plain = calibrate(trajectory=calibration_trajectory(n_steps=4, repetitions=1), **kw)
+    leg = calibrate(trajectory=calibration_trajectory(n_steps=4, repetitions=1, shear_mm=1.0, shear_steps=3), **kw)
+    assert leg["phase"].tolist() == [0] * 4 + [3] * 4 + [0] * 4 + [1] * 3 + [2] * 3
+    out = np.abs(leg["force"][leg["phase"] == 1])
+    assert np.all(np.diff(out[:, 0]) > 0) and np.all(out[:, 1] < 1e-3 * out[:, 0])
+    np.testing.assert_allclose(leg["force"][:8], plain["force"])
+    np.testing.assert_allclose(leg["force"][8:12], plain["force"][:4])
+    curves, plain_curves = curves_from_calibration(leg), curves_from_calibration(plain)
+    np.testing.assert_allclose(curves.loading, plain_curves.loading, rtol=1e-9)
+    assert plain_curves.shear_gain is None
+    assert 0.05 < curves.shear_gain < 0.6             # |F_xy| / |Fz| of a 1 mm shear, mu = 0.55
