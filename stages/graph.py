@@ -24,7 +24,7 @@ GRAPH.node("calibration_trajectory", "stages.sim.trajectory:calibration_trajecto
            params={k: f"calibration_trajectory.{k}" for k in (
                "max_depth_mm", "n_steps", "repetitions", "indenter", "rate_hz", "shear_mm",
                "shear_steps")},
-           description="3 indentations to d_max, a shear leg and back, for material compensation")
+           description="3 indentations to d_max and back, then a shear leg, for material compensation")
 
 # -- marker representation ----------------------------------------------------------------
 GRAPH.node("patterns", "stages.markers.patterns:reference_set",

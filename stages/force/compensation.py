@@ -61,11 +61,6 @@ class Curves:
         return cls(tuple(float(v) for v in d["loading"]), tuple(float(v) for v in d["unloading"]),
                    None if gain is None else float(gain))
 
-    def force(self, normalised_depth, loading) -> np.ndarray:
-        """|Fz| the curves predict at each depth, loading or unloading branch per frame."""
-        d = np.asarray(normalised_depth, float)
-        return np.where(np.asarray(loading, bool), np.polyval(self.loading, d), np.polyval(self.unloading, d))
-
 
 def _fit_branch(d: np.ndarray, f: np.ndarray, name: str) -> tuple[float, float, float]:
     if d.size < 2 or np.ptp(d) <= 0:
@@ -78,6 +73,14 @@ def _fit_branch(d: np.ndarray, f: np.ndarray, name: str) -> tuple[float, float, 
     return (float(a), float(b), 0.0)
 
 
+def _branches(loading, phase=None) -> tuple[np.ndarray, np.ndarray]:
+    """(press, release) masks of a calibration's frames: loading frames minus any shear leg
+    (phases 1-2, when `phase` is given), and the unloading frames."""
+    loading = np.asarray(loading, bool)
+    press = loading if phase is None else loading & (np.asarray(phase) == 0)
+    return press, ~loading
+
+
 def fit_curves(normalised_depth, force, loading, phase=None) -> Curves:
     """Fit the loading and unloading curves of a calibration (calibrate artifact arrays:
     normalised_depth (N,), force (N,3) N, loading (N,) bool, and phase (N,) if it has a shear
@@ -88,21 +91,20 @@ def fit_curves(normalised_depth, force, loading, phase=None) -> Curves:
     if force.shape != (d.size, 3) or loading.shape != d.shape:
         raise ValueError(f"fit_curves: normalised_depth {d.shape}, force {force.shape}, loading "
                          f"{loading.shape} must be (N,), (N,3), (N,)")
+    if phase is not None and np.shape(phase) != d.shape:
+        raise ValueError(f"fit_curves: phase {np.shape(phase)} and normalised_depth {d.shape} differ")
     f = np.abs(force[:, 2])
-    press, gain = loading, None
+    press, release = _branches(loading, phase)
+    gain = None
     if phase is not None:
-        phase = np.asarray(phase)
-        if phase.shape != d.shape:
-            raise ValueError(f"fit_curves: phase {phase.shape} and normalised_depth {d.shape} differ")
-        press = loading & (phase == 0)
-        out = phase == 1
+        out = np.asarray(phase) == 1
         if out.any():
             normal = f[out].sum()
             if not normal > 0:
                 raise ValueError("fit_curves: the shear leg has no normal force: no shear gain")
             gain = float(np.hypot(force[out, 0], force[out, 1]).sum() / normal)
     return Curves(_fit_branch(d[press], f[press], "loading"),
-                  _fit_branch(d[~loading], f[~loading], "unloading"), gain)
+                  _fit_branch(d[release], f[release], "unloading"), gain)
 
 
 def curves_from_calibration(calibration: Mapping) -> Curves:
@@ -178,11 +180,8 @@ def curves_figure(calibrations: Mapping[str, tuple[Mapping, Curves]], title: str
     for k, (name, (cal, curves)) in enumerate(calibrations.items()):
         colour = f"C{k}"
         d, f = np.asarray(cal["normalised_depth"]), np.abs(np.asarray(cal["force"])[:, 2])
-        load = np.asarray(cal["loading"], bool)
-        if "phase" in cal:                      # a shear leg is not on the curves
-            load &= np.asarray(cal["phase"]) == 0
+        load, unload = _branches(cal["loading"], cal["phase"] if "phase" in cal else None)
         ax.plot(d[load], f[load], ".", color=colour, ms=3, alpha=0.6)
-        unload = ~np.asarray(cal["loading"], bool)
         ax.plot(d[unload], f[unload], "x", color=colour, ms=3, alpha=0.6)
         ax.plot(grid, np.polyval(curves.loading, grid), "-", color=colour, label=f"{name} loading")
         ax.plot(grid, np.polyval(curves.unloading, grid), "--", color=colour, label=f"{name} unloading")

@@ -78,22 +78,17 @@ def model_config(config: Mapping | None = None) -> dict:
     if int(out["input_size"]) % down:
         raise ValueError(f"input_size {out['input_size']} must be a multiple of {down} "
                          f"(the encoder's {len(out['encoder_channels'])} stride-2 stages after the stem)")
-    auto = [out[k] == AUTO if isinstance(out[k], str) else False for k in ("force_min", "force_max")]
-    if any(auto):
-        if not all(auto):
-            raise ValueError(f"force_min {out['force_min']!r} / force_max {out['force_max']!r}: "
-                             f"both {AUTO!r} or neither")
-        out["input_size"], out["hidden"] = int(out["input_size"]), int(out["hidden"])
+    out["input_size"], out["hidden"] = int(out["input_size"]), int(out["hidden"])
+    auto = [isinstance(out[k], str) and out[k] == AUTO for k in ("force_min", "force_max")]
+    if all(auto):
         return out
-    if any(isinstance(out[k], str) for k in ("force_min", "force_max")):
+    if any(auto) or any(isinstance(out[k], str) for k in ("force_min", "force_max")):
         raise ValueError(f"force_min {out['force_min']!r} / force_max {out['force_max']!r}: "
-                         f"3 numbers each or {AUTO!r}")
+                         f"3 numbers each, or both {AUTO!r}")
     lo, hi = np.asarray(out["force_min"], float), np.asarray(out["force_max"], float)
     if lo.shape != (3,) or hi.shape != (3,) or np.any(hi <= lo):
         raise ValueError(f"force_min {out['force_min']} / force_max {out['force_max']}: "
                          "need 3 values each, max > min")
-    out["input_size"] = int(out["input_size"])
-    out["hidden"] = int(out["hidden"])
     out["force_min"], out["force_max"] = lo.tolist(), hi.tolist()
     return out
 
