@@ -67,14 +67,16 @@ def _samples_sheet(translator, images: np.ndarray, refs: np.ndarray, seed: int) 
     return contact_sheet(tiles, cols=3)
 
 
-def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_size, lr, seed, title):
+def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_size, lr, seed,
+           change_weight, title):
     from stages.m2m.model import Translator, state_arrays
     from stages.m2m.train import PairBatches, fit
     frames, rows = paired_table(markers, skins, train_indenters, per_skin)
     images, refs = _paired_arrays(markers, skins, rows, config["size"])
     with torch_threads():
         hist = fit(net, config, PairBatches(images, refs, seed), steps=int(steps),
-                   batch_size=int(batch_size), lr=float(lr), seed=int(seed), progress=title)
+                   batch_size=int(batch_size), lr=float(lr), seed=int(seed),
+                   change_weight=float(change_weight), progress=title)
         weights = state_arrays(net)
         samples = _samples_sheet(Translator(config, weights), images, refs, seed)
     tail = hist["loss"][-max(1, len(hist["loss"]) // 20):]
@@ -85,7 +87,8 @@ def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_
                     "samples": png(samples)},
         "attrs": {"config": config, "skins": list(skins), "train_indenters": list(train_indenters),
                   "pairs": int(len(frames)), "steps": int(steps), "batch_size": int(batch_size),
-                  "lr": float(lr), "seed": int(seed), "seconds": round(hist["seconds"], 2),
+                  "lr": float(lr), "seed": int(seed), "change_weight": float(change_weight),
+                  "seconds": round(hist["seconds"], 2),
                   "steps_per_s": round(hist["steps_per_s"], 3),
                   "final_loss": float(np.mean(tail)) if len(tail) else float("nan"),
                   "parameters": int(sum(v.size for v in weights.values()))},
@@ -93,7 +96,8 @@ def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_
 
 
 def pretrain(*, markers: Mapping, skins: list[str], train_indenters: list[str], size, steps: int,
-             batch_size: int, lr: float, seed: int, width: int, timesteps: int) -> dict:
+             batch_size: int, lr: float, seed: int, width: int, timesteps: int,
+             change_weight: float = 0.0) -> dict:
     """Node m2m_sim: the generator trained from scratch on every ordered pair of `skins`
     (location-paired frames of the training indenters).  Returns weights (name -> array),
     the per-step loss, figures loss/samples and attrs (config to rebuild the model, ...)."""
@@ -102,18 +106,20 @@ def pretrain(*, markers: Mapping, skins: list[str], train_indenters: list[str], 
     config = default_config(size=size, width=width, timesteps=timesteps)
     torch.manual_seed(int(seed))
     net = build(config)
-    return _train(net, config, markers, skins, train_indenters, 0, steps, batch_size, lr, seed, "m2m pretrain")
+    return _train(net, config, markers, skins, train_indenters, 0, steps, batch_size, lr, seed,
+                  change_weight, "m2m pretrain")
 
 
 def finetune(*, base, markers: Mapping, skins: list[str], train_indenters: list[str],
-             pairs_per_skin: int, steps: int, batch_size: int, lr: float, seed: int) -> dict:
+             pairs_per_skin: int, steps: int, batch_size: int, lr: float, seed: int,
+             change_weight: float = 0.0) -> dict:
     """Node m2m: `base` (a pretrained model) fine-tuned on `pairs_per_skin` location-paired
     frames shared by `skins`, evenly spread over the training indenters' frames."""
     from stages.m2m.model import build, weights_of
     config = attrs_of(base)["config"]
     net = build(config, weights_of(base))
     out = _train(net, config, markers, skins, train_indenters, int(pairs_per_skin), steps, batch_size,
-                 lr, seed, "m2m finetune")
+                 lr, seed, change_weight, "m2m finetune")
     out["attrs"]["base_skins"] = list(attrs_of(base).get("skins", []))
     out["attrs"]["pairs_per_skin"] = int(pairs_per_skin)
     return out

@@ -68,9 +68,16 @@ class PairBatches:
         return np.ascontiguousarray(x)
 
 
-def loss_fn(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """BCE on logits + DICE_WEIGHT * (1 - soft Dice) of the marker probability."""
-    bce = F.binary_cross_entropy_with_logits(logits, target)
+def loss_fn(logits: torch.Tensor, target: torch.Tensor, reference: torch.Tensor | None = None,
+            change_weight: float = 0.0) -> torch.Tensor:
+    """BCE on logits + DICE_WEIGHT * (1 - soft Dice) of the marker probability.  With a
+    target `reference` (binary, like target) and change_weight > 0, the BCE of every pixel
+    the deformation changed (target != reference) weighs 1 + change_weight."""
+    if reference is not None and change_weight > 0:
+        w = 1.0 + change_weight * (target - reference).abs()
+        bce = (F.binary_cross_entropy_with_logits(logits, target, reduction="none") * w).sum() / w.sum()
+    else:
+        bce = F.binary_cross_entropy_with_logits(logits, target)
     prob = torch.sigmoid(logits)
     inter = (prob * target).sum((1, 2, 3))
     dice = (2 * inter + 1) / (prob.sum((1, 2, 3)) + target.sum((1, 2, 3)) + 1)
@@ -93,8 +100,9 @@ def noisy_input(target: torch.Tensor, config, gen: torch.Generator) -> tuple[tor
 
 
 def fit(net: M2MNet, config, batches: Callable, *, steps: int, batch_size: int, lr: float,
-        seed: int, progress: str = "m2m") -> dict:
-    """AdamW with warm-up and cosine decay.  Returns {"loss": (steps,) float32, "seconds",
+        seed: int, change_weight: float = 0.0, progress: str = "m2m") -> dict:
+    """AdamW with warm-up and cosine decay; change_weight as in loss_fn (the target reference
+    is the condition's third channel).  Returns {"loss": (steps,) float32, "seconds",
     "steps_per_s"}."""
     from tqdm import tqdm
     torch.manual_seed(seed)
@@ -112,7 +120,7 @@ def fit(net: M2MNet, config, batches: Callable, *, steps: int, batch_size: int, 
         cond, target = batches(batch_size)
         x_t, t = noisy_input(target, config, gen)
         cond, target, x_t, t = cond.to(dev), target.to(dev), x_t.to(dev), t.to(dev)
-        loss = loss_fn(net(x_t, cond, t), target)
+        loss = loss_fn(net(x_t, cond, t), target, (cond[:, 2:3] > 0).float(), float(change_weight))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

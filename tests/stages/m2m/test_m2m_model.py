@@ -97,3 +97,24 @@ def test_batches_apply_one_symmetry_to_all_channels_and_loss():
     cfg = default_config(size=(16, 16), width=8, timesteps=50)
     x_t, t = noisy_input(target, cfg, torch.Generator().manual_seed(0))
     assert x_t.shape == target.shape and (t == 49).float().mean() >= 0.4
+
+
+def test_change_weight_weighs_the_pixels_the_deformation_changed():
+    """A prediction that copies the reference is wrong exactly on the changed pixels: the
+    change weight raises its BCE from 2/64 wrong pixels to (1+w)*2 / (62 + (1+w)*2)."""
+    ref = torch.zeros(1, 1, 8, 8)
+    ref[..., 2:4, 2:4] = 1.0
+    target = ref.clone()
+    target[..., 2, 4] = target[..., 3, 4] = 1.0             # the marker grew by two pixels
+    copy = (2 * ref - 1) * 30                                # confident copy of the reference
+    from torch.nn import functional as F
+    bce = F.binary_cross_entropy_with_logits(copy, target, reduction="none")
+    wrong = float(bce[..., 2, 4])
+    assert float(bce.mean()) == pytest.approx(2 * wrong / 64, rel=1e-4)
+    dice = 1 - (2 * 4 + 1) / (4 + 6 + 1)
+    plain = float(loss_fn(copy, target))
+    assert plain == pytest.approx(2 * wrong / 64 + dice, rel=1e-3)
+    weighted = float(loss_fn(copy, target, ref, change_weight=10.0))
+    assert weighted == pytest.approx(22 * wrong / (62 + 22) + dice, rel=1e-3)
+    # nothing changed: the weight has nothing to weigh
+    assert float(loss_fn(copy, ref, ref, change_weight=10.0)) == pytest.approx(float(loss_fn(copy, ref)), rel=1e-6)
