@@ -22,7 +22,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import numpy as np                                                        # noqa: E402
 import yaml                                                               # noqa: E402
 
-from benchmarks.summary import drain, record                                     # noqa: E402
+from benchmarks.summary import drain, record                              # noqa: E402
 from stages.capture.devices import Robot                                  # noqa: E402
 from stages.capture.emulators import Emulators                            # noqa: E402
 from stages.capture.poses import to_pose                                  # noqa: E402

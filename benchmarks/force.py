@@ -28,8 +28,8 @@ import torch                                                                    
 
 from benchmarks.summary import record                                           # noqa: E402
 from stages.force.model import StreamingPredictor, model_config, predict_contacts  # noqa: E402
-from stages.common import torch_threads                                          # noqa: E402
-from stages.force.train import fit, make_sequences               # noqa: E402
+from stages.common import torch_threads                                         # noqa: E402
+from stages.force.train import fit, make_sequences                              # noqa: E402
 
 SENSOR_HZ = 40.0
 FIT_STEPS, BATCH, SEQ_LEN = 200, 4, 24          # the default profile's training

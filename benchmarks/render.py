@@ -39,7 +39,7 @@ import numpy as np                                                              
 
 import stages.markers.looks as looks                                            # noqa: E402
 import stages.markers.render as render                                          # noqa: E402
-from benchmarks.summary import drain, record                                           # noqa: E402
+from benchmarks.summary import drain, record                                    # noqa: E402
 from stages.markers.mitsuba_backend import llvm_usable, mitsuba, thread_count   # noqa: E402
 from stages.markers.patterns import gelsight_pattern, pattern                   # noqa: E402
 from stages.markers.render import LABEL_KEYS, Renderer, render_sequence         # noqa: E402

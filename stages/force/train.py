@@ -88,8 +88,9 @@ def fit(sequences: list[ContactSequence], config: Mapping | None = None, *, step
     """Train a regressor; returns (model in eval mode, history).
 
     ``init`` is a :func:`to_arrays` dict to start from (fine-tuning); its config must equal
-    ``config``.  An "auto" force range is set from the sequences' labels (model.resolve_range).  history: loss (per step, normalised L1), seconds, samples_per_s (contact
-    windows), frames_per_s, clipped_fraction (labels outside the force range).
+    ``config``.  An "auto" force range is set from the sequences' labels (model.resolve_range).
+    history: loss (per step, normalised L1), seconds, samples_per_s (contact windows),
+    frames_per_s, clipped_fraction (labels outside the force range).
     """
     if not sequences:
         raise ValueError("fit: no training contact sequences")
