@@ -13,9 +13,7 @@ the target sensor's reference image.  This is a CPU-sized version of the same id
   spans several marker pitches, enough to carry the displacement of a neighbourhood of
   source markers onto the target markers in between.
 * It predicts the target marker image x0 as logits (probability = sigmoid); binary 0/255
-  images are the probability thresholded at 0.5, or at the target's calibrated threshold
-  when the model carries one for that target reference (the fine-tune calibrates one per
-  skin, `calibrate_threshold`).  The logits are a residual on the target
+  images are the probability thresholded at 0.5.  The logits are a residual on the target
   reference (ref_gain x reference + network output), so the network learns the edits the
   deformation makes to the target's markers rather than first learning to copy them.
 * Diffusion: a DDPM linear beta schedule over `timesteps` steps.  The one-step generator
@@ -33,7 +31,6 @@ CPU; weights always come back to the CPU as float32 arrays.
 """
 from __future__ import annotations
 
-import hashlib
 import math
 from typing import Mapping
 
@@ -217,53 +214,14 @@ def _resize(images: np.ndarray, size) -> np.ndarray:
     return np.where(out >= 128, 255, 0).astype(np.uint8)
 
 
-def reference_key(reference, size) -> str:
-    """Digest of a target reference image at the model's size: what a calibrated threshold is
-    stored under, so it follows the reference, not the skin's name."""
-    ref = _resize(np.asarray(reference, np.uint8)[None], tuple(size))[0]
-    return hashlib.sha1(np.ascontiguousarray(ref).tobytes()).hexdigest()[:16]
-
-
-def calibrate_threshold(prob: np.ndarray, truth: np.ndarray, reference: np.ndarray,
-                        grid=None) -> dict:
-    """The probability threshold at which translations change as many pixels of the target
-    reference as the deformation really does.
-
-    prob (N,h,w): translated probabilities; truth (N,h,w): the target's true images (binary,
-    >127 is marker); reference (h,w): the target's reference.  A one-step generator trained
-    with a pixel loss is biased towards the reference (or, with a change-weighted loss, away
-    from it), so 0.5 draws the deformation too small or too large; matching the changed area
-    on paired frames removes that bias without touching the network.  Returns threshold,
-    true_change and change_at_half (changed pixel fractions)."""
-    prob = np.asarray(prob, np.float32)
-    ref = np.asarray(reference) > 127
-    want = float(np.mean((np.asarray(truth) > 127) != ref))
-    grid = np.round(np.arange(0.1, 0.9001, 0.025), 3) if grid is None else np.asarray(grid, float)
-    on, off = prob[:, ref], prob[:, ~ref]              # pixels that are / are not reference marker
-    total = prob.size
-    def change(t):
-        return float((np.count_nonzero(on < t) + np.count_nonzero(off >= t)) / total)
-    areas = np.array([change(t) for t in grid])
-    best = int(np.argmin(np.abs(areas - want)))
-    return {"threshold": float(grid[best]), "true_change": round(want, 5),
-            "change_at_half": round(change(0.5), 5)}
-
-
 class Translator:
-    """Runs a trained M2M network on uint8 marker images.  thresholds: reference key ->
-    probability threshold (the fine-tune's calibration); other targets use 0.5."""
+    """Runs a trained M2M network on uint8 marker images."""
 
-    def __init__(self, config: Mapping, weights: Mapping, thresholds: Mapping | None = None):
+    def __init__(self, config: Mapping, weights: Mapping):
         self.config = dict(config)
         self.device = device()
         self.net = build(self.config, weights).to(self.device)
         self.size = tuple(self.config["size"])
-        self.thresholds = {str(k): float(v) for k, v in (thresholds or {}).items()}
-
-    def threshold_for(self, target_reference) -> float:
-        if not self.thresholds:
-            return 0.5
-        return self.thresholds.get(reference_key(target_reference, self.size), 0.5)
 
     def probabilities(self, images, source_reference, target_reference, steps: int = 1,
                       batch: int = 64) -> np.ndarray:
@@ -283,14 +241,12 @@ class Translator:
         return np.concatenate(out) if out else np.zeros((0, *self.size), np.float32)
 
     def translate(self, images, source_reference, target_reference, steps: int = 1,
-                  batch: int = 64, threshold: float | None = None) -> np.ndarray:
+                  batch: int = 64) -> np.ndarray:
         """Source marker images (N,H,W) uint8 -> the same deformations in the target's marker
-        style, (N,H',W') uint8 0/255 at the target reference's size.  threshold: on the
-        probability; None takes the target's calibrated one (else 0.5)."""
+        style, (N,H',W') uint8 0/255 at the target reference's size."""
         target_reference = np.asarray(target_reference, np.uint8)
         prob = self.probabilities(images, source_reference, target_reference, steps, batch)
-        t = self.threshold_for(target_reference) if threshold is None else float(threshold)
-        binary = np.where(prob >= t, 255, 0).astype(np.uint8)
+        binary = np.where(prob >= 0.5, 255, 0).astype(np.uint8)
         return _resize(binary, target_reference.shape)
 
 
@@ -299,5 +255,4 @@ def load_translator(model) -> Translator:
     attrs = attrs_of(model)
     if "config" not in attrs:
         raise KeyError("model artifact has no 'config' attribute (not an M2M model?)")
-    thresholds = {t["reference"]: t["threshold"] for t in attrs.get("thresholds", [])}
-    return Translator(attrs["config"], weights_of(model), thresholds)
+    return Translator(attrs["config"], weights_of(model))

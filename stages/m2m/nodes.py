@@ -106,7 +106,7 @@ def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_
                   "steps_per_s": round(hist["steps_per_s"], 3),
                   "final_loss": float(np.mean(tail)) if len(tail) else float("nan"),
                   "parameters": int(sum(v.size for v in weights.values()))},
-    }, images, refs
+    }
 
 
 def pretrain(*, markers: Mapping, skins: list[str], train_indenters: list[str], size, steps: int,
@@ -121,44 +121,21 @@ def pretrain(*, markers: Mapping, skins: list[str], train_indenters: list[str], 
     torch.manual_seed(int(seed))
     net = build(config)
     return _train(net, config, markers, skins, train_indenters, 0, steps, batch_size, lr, seed,
-                  change_weight, "m2m pretrain")[0]
-
-
-def _thresholds(config, weights, skins: Sequence[str], images: np.ndarray, refs: np.ndarray) -> list[dict]:
-    """Per target skin, the threshold whose translations of the fine-tune pairs (from every
-    other skin) change as many reference pixels as the true images do."""
-    from tqdm import tqdm
-    from stages.m2m.model import Translator, calibrate_threshold, reference_key
-    translator = Translator(config, weights)
-    out = []
-    for b in tqdm(range(len(skins)), desc="m2m thresholds", disable=None):
-        others = [a for a in range(len(skins)) if a != b]
-        if not others:
-            continue
-        prob = np.concatenate([translator.probabilities(images[a], refs[a], refs[b]) for a in others])
-        truth = np.concatenate([images[b]] * len(others))
-        fit = calibrate_threshold(prob, truth, refs[b])
-        out.append({"skin": str(skins[b]), "reference": reference_key(refs[b], config["size"]), **fit})
-    return out
+                  change_weight, "m2m pretrain")
 
 
 def finetune(*, base, markers: Mapping, skins: list[str], train_indenters: list[str],
              pairs_per_skin: int, steps: int, batch_size: int, lr: float, seed: int,
-             change_weight: float = 0.0, calibrate: bool = False) -> dict:
+             change_weight: float = 0.0) -> dict:
     """Node m2m: `base` (a pretrained model) fine-tuned on `pairs_per_skin` location-paired
-    frames shared by `skins`, evenly spread over the training indenters' frames.  calibrate:
-    store a probability threshold per skin (attrs `thresholds`, see
-    model.calibrate_threshold) that translations into that skin's reference then use."""
+    frames shared by `skins`, evenly spread over the training indenters' frames."""
     from stages.m2m.model import build, weights_of
     config = attrs_of(base)["config"]
     net = build(config, weights_of(base))
-    out, images, refs = _train(net, config, markers, skins, train_indenters, int(pairs_per_skin), steps,
-                               batch_size, lr, seed, change_weight, "m2m finetune")
+    out = _train(net, config, markers, skins, train_indenters, int(pairs_per_skin), steps, batch_size,
+                 lr, seed, change_weight, "m2m finetune")
     out["attrs"]["base_skins"] = list(attrs_of(base).get("skins", []))
     out["attrs"]["pairs_per_skin"] = int(pairs_per_skin)
-    if calibrate:
-        with torch_threads():
-            out["attrs"]["thresholds"] = _thresholds(config, out["weights"], skins, images, refs)
     return out
 
 
@@ -231,8 +208,7 @@ def translate_sequence(*, model, source_markers, target_markers, eval_indenters:
         result = yield from _stream(source_markers, target_markers, eval_indenters, n_eval,
                                     lambda im: translator.translate(im, src_ref, tgt_ref, int(sampler_steps)),
                                     "m2m")
-    result["attrs"].update(sampler_steps=int(sampler_steps), source=source, target=target,
-                           threshold=translator.threshold_for(tgt_ref))
+    result["attrs"].update(sampler_steps=int(sampler_steps), source=source, target=target)
     return result
 
 

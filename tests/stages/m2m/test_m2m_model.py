@@ -4,8 +4,8 @@ import pytest
 import torch
 
 from stages.m2m import load_translator
-from stages.m2m.model import (Translator, alphas_cumprod, build, calibrate_threshold, default_config,
-                              reference_key, sample, state_arrays, weights_of)
+from stages.m2m.model import (Translator, alphas_cumprod, build, default_config, sample, state_arrays,
+                              weights_of)
 from stages.m2m.train import PairBatches, loss_fn, noisy_input
 
 
@@ -60,46 +60,6 @@ def test_translation_is_binary_deterministic_and_batch_independent():
     assert np.abs(one_p - multi_p).max() > 1e-3          # the multi-step sampler takes another path
     with pytest.raises(ValueError, match="steps"):
         t.translate(imgs, refs[0], refs[1], steps=0)
-
-
-def test_calibrated_threshold_matches_the_true_changed_area():
-    """Reference: 40 marker pixels of 400.  Truth changes 30 pixels per image.  The
-    probabilities give the 40 reference pixels 0.9 except 10 at 0.3 (they drop below any
-    threshold above 0.3), and 60 background pixels the values 0.41, 0.42 ... 1.0: at
-    threshold t the change is 10 + #(background >= t), 30 when 20 background values are >= t,
-    i.e. t = 0.81.  At 0.5 it is 10 + 51 = 61 pixels."""
-    ref = np.zeros((20, 20), np.uint8)
-    ref.flat[:40] = 255
-    truth = ref.copy()
-    truth.flat[:30] = 0                      # 30 changed pixels
-    prob = np.zeros((20, 20), np.float32)
-    prob.flat[:40] = 0.9
-    prob.flat[:10] = 0.3
-    prob.flat[40:100] = np.round(np.arange(0.41, 1.0001, 0.01), 2)
-    fit = calibrate_threshold(np.stack([prob, prob]), np.stack([truth, truth]), ref,
-                              grid=np.round(np.arange(0.3, 0.95, 0.01), 2))
-    assert fit["threshold"] == pytest.approx(0.81)
-    assert fit["true_change"] == pytest.approx(30 / 400)
-    assert fit["change_at_half"] == pytest.approx(61 / 400)
-
-
-def test_translator_uses_the_threshold_of_the_matching_reference_only():
-    cfg, net = _model()
-    imgs, refs = _images(4), _images(3, seed=1)
-    w = state_arrays(net)
-    plain = Translator(cfg, w)
-    prob = plain.probabilities(imgs, refs[0], refs[1])
-    t = float(np.median(prob[prob >= 0.5]))                  # moves half the marker pixels
-    calibrated = Translator(cfg, w, {reference_key(refs[1], cfg["size"]): t})
-    assert plain.threshold_for(refs[1]) == 0.5
-    assert calibrated.threshold_for(refs[1]) == t and calibrated.threshold_for(refs[2]) == 0.5
-    assert 0 < ((prob >= 0.5) & (prob < t)).sum()
-    np.testing.assert_array_equal(calibrated.translate(imgs, refs[0], refs[1]),
-                                  np.where(prob >= t, 255, 0))
-    np.testing.assert_array_equal(calibrated.translate(imgs, refs[0], refs[2]),
-                                  plain.translate(imgs, refs[0], refs[2]))
-    np.testing.assert_array_equal(calibrated.translate(imgs, refs[0], refs[1], threshold=0.5),
-                                  plain.translate(imgs, refs[0], refs[1]))
 
 
 def test_translator_resizes_to_the_model_and_back():
