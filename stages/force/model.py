@@ -82,7 +82,7 @@ def model_config(config: Mapping | None = None) -> dict:
     auto = [isinstance(out[k], str) and out[k] == AUTO for k in ("force_min", "force_max")]
     if all(auto):
         return out
-    if any(auto) or any(isinstance(out[k], str) for k in ("force_min", "force_max")):
+    if any(isinstance(out[k], str) for k in ("force_min", "force_max")):
         raise ValueError(f"force_min {out['force_min']!r} / force_max {out['force_max']!r}: "
                          f"3 numbers each, or both {AUTO!r}")
     lo, hi = np.asarray(out["force_min"], float), np.asarray(out["force_max"], float)
