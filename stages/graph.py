@@ -91,14 +91,16 @@ GRAPH.node("m2m_sim", "stages.m2m.nodes:pretrain",
                    "batch_size": "m2m.pretrain.batch_size", "lr": "m2m.pretrain.lr",
                    "seed": "m2m.pretrain.seed", "width": "m2m.pretrain.width",
                    "timesteps": "m2m.pretrain.timesteps",
-                   "change_weight": "m2m.pretrain.change_weight"},
+                   "change_weight": "m2m.pretrain.change_weight",
+                   "change_share": "m2m.pretrain.change_share"},
            description="M2M generator trained from scratch on the 12 simulation patterns")
 GRAPH.node("m2m", "stages.m2m.nodes:finetune",
            inputs={"base": "m2m_sim", "markers": "markers[*]"},
            params={"skins": "m2m.finetune.skins", "train_indenters": "splits.train_indenters",
                    "pairs_per_skin": "m2m.finetune.pairs_per_skin", "steps": "m2m.finetune.steps",
                    "batch_size": "m2m.finetune.batch_size", "lr": "m2m.finetune.lr",
-                   "seed": "m2m.finetune.seed", "change_weight": "m2m.finetune.change_weight"},
+                   "seed": "m2m.finetune.seed", "change_weight": "m2m.finetune.change_weight",
+                   "change_share": "m2m.finetune.change_share"},
            description="M2M fine-tuned to the twin sensors with a few location-paired frames each")
 _EVAL = {"eval_indenters": "splits.test_indenters", "n_eval": "m2m.n_eval"}
 GRAPH.node("translate_sim", "stages.m2m.nodes:translate_sequence",

@@ -81,7 +81,7 @@ def _distinct_references(skins: Sequence[str], refs: np.ndarray, title: str) -> 
 
 
 def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_size, lr, seed,
-           change_weight, title):
+           change_weight, change_share, title):
     from stages.m2m.model import Translator, state_arrays
     from stages.m2m.train import PairBatches, fit
     frames, rows = paired_table(markers, skins, train_indenters, per_skin)
@@ -90,7 +90,8 @@ def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_
     with torch_threads():
         hist = fit(net, config, PairBatches(images, refs, seed), steps=int(steps),
                    batch_size=int(batch_size), lr=float(lr), seed=int(seed),
-                   change_weight=float(change_weight), progress=title)
+                   change_weight=float(change_weight), change_share=float(change_share),
+                   progress=title)
         weights = state_arrays(net)
         samples = _samples_sheet(Translator(config, weights), images, refs, seed)
     tail = hist["loss"][-max(1, len(hist["loss"]) // 20):]
@@ -102,6 +103,7 @@ def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_
         "attrs": {"config": config, "skins": list(skins), "train_indenters": list(train_indenters),
                   "pairs": int(len(frames)), "steps": int(steps), "batch_size": int(batch_size),
                   "lr": float(lr), "seed": int(seed), "change_weight": float(change_weight),
+                  "change_share": float(change_share),
                   "seconds": round(hist["seconds"], 2),
                   "steps_per_s": round(hist["steps_per_s"], 3),
                   "final_loss": float(np.mean(tail)) if len(tail) else float("nan"),
@@ -111,7 +113,7 @@ def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_
 
 def pretrain(*, markers: Mapping, skins: list[str], train_indenters: list[str], size, steps: int,
              batch_size: int, lr: float, seed: int, width: int, timesteps: int,
-             change_weight: float = 0.0) -> dict:
+             change_weight: float = 0.0, change_share: float = 0.0) -> dict:
     """Node m2m_sim: the generator trained from scratch on every ordered pair of `skins`
     (location-paired frames of the training indenters).  Returns weights (name -> array),
     the per-step loss, figures loss/samples and attrs (config to rebuild the model, ...)."""
@@ -121,19 +123,19 @@ def pretrain(*, markers: Mapping, skins: list[str], train_indenters: list[str], 
     torch.manual_seed(int(seed))
     net = build(config)
     return _train(net, config, markers, skins, train_indenters, 0, steps, batch_size, lr, seed,
-                  change_weight, "m2m pretrain")
+                  change_weight, change_share, "m2m pretrain")
 
 
 def finetune(*, base, markers: Mapping, skins: list[str], train_indenters: list[str],
              pairs_per_skin: int, steps: int, batch_size: int, lr: float, seed: int,
-             change_weight: float = 0.0) -> dict:
+             change_weight: float = 0.0, change_share: float = 0.0) -> dict:
     """Node m2m: `base` (a pretrained model) fine-tuned on `pairs_per_skin` location-paired
     frames shared by `skins`, evenly spread over the training indenters' frames."""
     from stages.m2m.model import build, weights_of
     config = attrs_of(base)["config"]
     net = build(config, weights_of(base))
     out = _train(net, config, markers, skins, train_indenters, int(pairs_per_skin), steps, batch_size,
-                 lr, seed, change_weight, "m2m finetune")
+                 lr, seed, change_weight, change_share, "m2m finetune")
     out["attrs"]["base_skins"] = list(attrs_of(base).get("skins", []))
     out["attrs"]["pairs_per_skin"] = int(pairs_per_skin)
     return out

@@ -14,7 +14,7 @@ replaces the paper's 5*MSE + LPIPS + 0.5*GAN: binary cross-entropy on the marker
 (the pixel term, exact for binary targets) plus a soft Dice term on marker probability (the
 shape term: it weighs the ~10% of marker pixels as much as the background, which LPIPS did
 for the paper's thin dots).  The fine-tune weighs the BCE of the pixels a deformation changed
-(change_weight): a copy of the target reference is otherwise almost free, and it is the
+(change_weight, change_share): a copy of the target reference is otherwise almost free, and it is the
 change that carries the force (for uSkin the growth of 16 dots).  No adversarial term:
 outputs are thresholded to binary images, so the blur a GAN fights does not reach the
 artifacts.
@@ -72,15 +72,27 @@ class PairBatches:
 
 
 def loss_fn(logits: torch.Tensor, target: torch.Tensor, reference: torch.Tensor | None = None,
-            change_weight: float = 0.0) -> torch.Tensor:
-    """BCE on logits + DICE_WEIGHT * (1 - soft Dice) of the marker probability.  With a
-    target `reference` (binary, like target) and change_weight > 0, the BCE of every pixel
-    the deformation changed (target != reference) weighs 1 + change_weight."""
-    if reference is not None and change_weight > 0:
-        w = 1.0 + change_weight * (target - reference).abs()
-        bce = (F.binary_cross_entropy_with_logits(logits, target, reduction="none") * w).sum() / w.sum()
-    else:
+            change_weight: float = 0.0, change_share: float = 0.0) -> torch.Tensor:
+    """BCE on logits + DICE_WEIGHT * (1 - soft Dice) of the marker probability.
+
+    With a target `reference` (binary, like target), the BCE of every pixel the deformation
+    changed (target != reference) weighs w = max(1 + change_weight, s/(1-s) * n_same/n_changed)
+    with s = change_share, counted per example: the changed pixels then carry at least the share
+    s of the example's BCE.  A skin whose contact changes 1% of the image gets w ~ 8 at s = 0.09,
+    one whose taxel dots change 12% of it gets w = 1, so each is pushed off a copy of its
+    reference about as hard.  Each example's BCE is the w-weighted mean of its pixels."""
+    if reference is None or (change_weight <= 0 and change_share <= 0):
         bce = F.binary_cross_entropy_with_logits(logits, target)
+    else:
+        if not 0 <= change_share < 1:
+            raise ValueError(f"change_share must be in [0, 1), got {change_share}")
+        changed = (target - reference).abs()
+        n = changed[0].numel()
+        n_changed = changed.sum((1, 2, 3), keepdim=True)
+        share = change_share / (1 - change_share) * (n - n_changed) / n_changed.clamp(min=1)
+        w = 1.0 + (share.clamp(min=1.0 + change_weight) - 1.0) * changed
+        per_pixel = F.binary_cross_entropy_with_logits(logits, target, reduction="none")
+        bce = ((per_pixel * w).sum((1, 2, 3)) / w.sum((1, 2, 3))).mean()
     prob = torch.sigmoid(logits)
     inter = (prob * target).sum((1, 2, 3))
     dice = (2 * inter + 1) / (prob.sum((1, 2, 3)) + target.sum((1, 2, 3)) + 1)
@@ -103,8 +115,9 @@ def noisy_input(target: torch.Tensor, config, gen: torch.Generator) -> tuple[tor
 
 
 def fit(net: M2MNet, config, batches: Callable, *, steps: int, batch_size: int, lr: float,
-        seed: int, change_weight: float = 0.0, progress: str = "m2m") -> dict:
-    """AdamW with warm-up and cosine decay; change_weight as in loss_fn (the target reference
+        seed: int, change_weight: float = 0.0, change_share: float = 0.0,
+        progress: str = "m2m") -> dict:
+    """AdamW with warm-up and cosine decay; change_weight/share as in loss_fn (the target reference
     is the condition's third channel).  Returns {"loss": (steps,) float32, "seconds",
     "steps_per_s"}."""
     from tqdm import tqdm
@@ -123,7 +136,8 @@ def fit(net: M2MNet, config, batches: Callable, *, steps: int, batch_size: int, 
         cond, target = batches(batch_size)
         x_t, t = noisy_input(target, config, gen)
         cond, target, x_t, t = cond.to(dev), target.to(dev), x_t.to(dev), t.to(dev)
-        loss = loss_fn(net(x_t, cond, t), target, (cond[:, 2:3] > 0).float(), float(change_weight))
+        loss = loss_fn(net(x_t, cond, t), target, (cond[:, 2:3] > 0).float(), float(change_weight),
+                       float(change_share))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

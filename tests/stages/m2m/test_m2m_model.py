@@ -118,3 +118,27 @@ def test_change_weight_weighs_the_pixels_the_deformation_changed():
     assert weighted == pytest.approx(22 * wrong / (62 + 22) + dice, rel=1e-3)
     # nothing changed: the weight has nothing to weigh
     assert float(loss_fn(copy, ref, ref, change_weight=10.0)) == pytest.approx(float(loss_fn(copy, ref)), rel=1e-6)
+
+
+def test_change_share_gives_the_changed_pixels_their_share_per_example():
+    """Two examples, 2 and 16 of 64 pixels changed, a confident copy of the reference: at
+    share s = 0.2 the first's changed pixels weigh 0.25 * 62/2 = 7.75 (BCE share 0.2), the
+    second's would weigh 0.25 * 48/16 < 1 and stay at 1; the example BCEs are averaged."""
+    from torch.nn import functional as F
+    ref = torch.zeros(2, 1, 8, 8)
+    ref[..., 2:4, 2:4] = 1.0
+    target = ref.clone()
+    target[0, 0, 2:4, 4] = 1.0                               # 2 changed pixels
+    target[1, 0, 4:6, 0:8] = 1.0                             # 16 changed pixels
+    copy = (2 * ref - 1) * 30
+    wrong = float(F.binary_cross_entropy_with_logits(copy[0, 0, 2, 4], target[0, 0, 2, 4]))
+    dice = 1 - ((2 * 4 + 1) / (4 + 6 + 1) + (2 * 4 + 1) / (4 + 20 + 1)) / 2
+    first = 7.75 * 2 * wrong / (62 + 7.75 * 2)
+    second = 16 * wrong / 64
+    got = float(loss_fn(copy, target, ref, change_share=0.2))
+    assert got == pytest.approx((first + second) / 2 + dice, rel=1e-3)
+    # change_weight is a floor under the share's weight: 1 + 9 = 10 beats 7.75 in the first
+    floor = float(loss_fn(copy, target, ref, change_weight=9.0, change_share=0.2))
+    assert floor == pytest.approx((10 * 2 * wrong / (62 + 20) + 10 * 16 * wrong / (48 + 160)) / 2 + dice, rel=1e-3)
+    with pytest.raises(ValueError, match="change_share must be in \\[0, 1\\), got 1.0"):
+        loss_fn(copy, target, ref, change_share=1.0)
