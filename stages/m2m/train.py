@@ -14,10 +14,12 @@ replaces the paper's 5*MSE + LPIPS + 0.5*GAN: binary cross-entropy on the marker
 (the pixel term, exact for binary targets) plus a soft Dice term on marker probability (the
 shape term: it weighs the ~10% of marker pixels as much as the background, which LPIPS did
 for the paper's thin dots).  The fine-tune weighs the BCE of the pixels a deformation changed
-(change_weight, change_share): a copy of the target reference is otherwise almost free, and it is the
-change that carries the force (for uSkin the growth of 16 dots).  No adversarial term:
-outputs are thresholded to binary images, so the blur a GAN fights does not reach the
-artifacts.
+(change_weight, change_share): a copy of the target reference is otherwise almost free, and
+it is the change that carries the force (for uSkin the growth of 16 dots).  The share rule
+weighs them per example, since a contact changes ~1% of a GelSight image and ~12% of a
+3-axis uSkin one: one fixed weight that lifts the first draws the second's dots too large.
+No adversarial term: outputs are thresholded to binary images, so the blur a GAN fights
+does not reach the artifacts.
 """
 from __future__ import annotations
 
