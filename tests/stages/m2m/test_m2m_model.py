@@ -142,3 +142,5 @@ def test_change_share_gives_the_changed_pixels_their_share_per_example():
     assert floor == pytest.approx((10 * 2 * wrong / (62 + 20) + 10 * 16 * wrong / (48 + 160)) / 2 + dice, rel=1e-3)
     with pytest.raises(ValueError, match="change_share must be in \\[0, 1\\), got 1.0"):
         loss_fn(copy, target, ref, change_share=1.0)
+    with pytest.raises(ValueError, match="change_share must be in \\[0, 1\\), got -0.1"):
+        loss_fn(copy, target, ref, change_share=-0.1)        # not silently taken as "off"
