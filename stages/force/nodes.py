@@ -300,6 +300,9 @@ def _radar_png(mae: Mapping[str, np.ndarray], labels: list[str], study: str):
         ax.set_xticks(angles if radar else np.arange(len(labels)))
         ax.set_xticklabels(labels, fontsize=5 if radar else 7)
         ax.tick_params(axis="y", labelsize=6)
+        if radar:            # a few radial labels: at an angle, more of them overprint each other
+            from matplotlib.ticker import MaxNLocator
+            ax.yaxis.set_major_locator(MaxNLocator(3))
         ax.set_title(f"MAE {comp} (N)", fontsize=9)
     fig.suptitle(study, fontsize=9)
     fig.tight_layout(rect=(0, 0, 1, 0.93))
