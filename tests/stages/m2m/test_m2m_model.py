@@ -149,7 +149,7 @@ def test_change_share_gives_the_changed_pixels_their_share_per_example():
 def test_change_share_per_skin_weighs_every_example_of_a_skin_alike():
     """PairBatches hands the target skin's mean changed fraction with each example; with it the
     weight is the skin's, so a frame whose contact changed 16 of 64 pixels weighs its changed
-    pixels as much as a light touch's 2 on the same skin (per example, the first would get 1)."""
+    pixels as much as a light touch's 2 on the same skin (per example: 3 against 31)."""
     from torch.nn import functional as F
     ref = np.zeros((8, 8), np.uint8)
     ref[2:4, 2:4] = 255
