@@ -81,14 +81,18 @@ def _distinct_references(skins: Sequence[str], refs: np.ndarray, title: str) -> 
 
 
 def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_size, lr, seed,
-           change_weight, change_share, title):
+           change_weight, change_share, title, target_balance=0.0):
     from stages.m2m.model import Translator, state_arrays
-    from stages.m2m.train import PairBatches, fit
+    from stages.m2m.train import PairBatches, fit, target_probabilities
     frames, rows = paired_table(markers, skins, train_indenters, per_skin)
     images, refs = _paired_arrays(markers, skins, rows, config["size"])
     _distinct_references(skins, refs, title)
+    target_p = None
+    if float(target_balance) > 0:
+        target_p = target_probabilities([attrs_of(markers[s]).get("look", s) for s in skins],
+                                        float(target_balance))
     with torch_threads():
-        hist = fit(net, config, PairBatches(images, refs, seed), steps=int(steps),
+        hist = fit(net, config, PairBatches(images, refs, seed, target_p), steps=int(steps),
                    batch_size=int(batch_size), lr=float(lr), seed=int(seed),
                    change_weight=float(change_weight), change_share=float(change_share),
                    progress=title)
@@ -103,7 +107,9 @@ def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_
         "attrs": {"config": config, "skins": list(skins), "train_indenters": list(train_indenters),
                   "pairs": int(len(frames)), "steps": int(steps), "batch_size": int(batch_size),
                   "lr": float(lr), "seed": int(seed), "change_weight": float(change_weight),
-                  "change_share": float(change_share),
+                  "change_share": float(change_share), "target_balance": float(target_balance),
+                  "target_share": {s: round(float(v), 4) for s, v in
+                                   zip(skins, target_p if target_p is not None else np.full(len(skins), 1 / len(skins)))},
                   "seconds": round(hist["seconds"], 2),
                   "steps_per_s": round(hist["steps_per_s"], 3),
                   "final_loss": float(np.mean(tail)) if len(tail) else float("nan"),
@@ -128,14 +134,16 @@ def pretrain(*, markers: Mapping, skins: list[str], train_indenters: list[str], 
 
 def finetune(*, base, markers: Mapping, skins: list[str], train_indenters: list[str],
              pairs_per_skin: int, steps: int, batch_size: int, lr: float, seed: int,
-             change_weight: float = 0.0, change_share: float = 0.0) -> dict:
+             change_weight: float = 0.0, change_share: float = 0.0, target_balance: float = 0.0) -> dict:
     """Node m2m: `base` (a pretrained model) fine-tuned on `pairs_per_skin` location-paired
-    frames shared by `skins`, evenly spread over the training indenters' frames."""
+    frames shared by `skins`, evenly spread over the training indenters' frames.  Targets are
+    drawn by train.target_probabilities over the skins' looks (the markers' `look` attribute)
+    with `target_balance`."""
     from stages.m2m.model import build, weights_of
     config = attrs_of(base)["config"]
     net = build(config, weights_of(base))
     out = _train(net, config, markers, skins, train_indenters, int(pairs_per_skin), steps, batch_size,
-                 lr, seed, change_weight, change_share, "m2m finetune")
+                 lr, seed, change_weight, change_share, "m2m finetune", target_balance)
     out["attrs"]["base_skins"] = list(attrs_of(base).get("skins", []))
     out["attrs"]["pairs_per_skin"] = int(pairs_per_skin)
     return out

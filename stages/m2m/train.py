@@ -41,13 +41,39 @@ WEIGHT_DECAY = 1e-4
 WARMUP = 0.03              # share of the steps with a linear learning-rate warm-up
 
 
-class PairBatches:
-    """Random (condition, target) batches from paired images (S,K,H,W) and references (S,H,W)."""
+def target_probabilities(looks, balance: float) -> np.ndarray:
+    """How often each skin is drawn as the target: (1 - balance) spread evenly over the skins
+    plus `balance` spread evenly over the looks (each look's share split among its skins).
 
-    def __init__(self, images: np.ndarray, references: np.ndarray, seed: int):
+    Eight GelSight twins share one look, so a draw uniform over skins gives the TacTip and both
+    uSkin targets 27% of a fine-tune between them, while their translations are the ones that
+    must learn most (a different look, and for uSkin dots that grow with the taxel's load)."""
+    looks = [str(v) for v in looks]
+    if not looks:
+        raise ValueError("target_probabilities: no skins")
+    if not 0.0 <= float(balance) <= 1.0:
+        raise ValueError(f"target_balance must be in [0, 1], got {balance}")
+    kinds = sorted(set(looks))
+    count = {k: looks.count(k) for k in kinds}
+    p = np.array([(1 - balance) / len(looks) + balance / len(kinds) / count[k] for k in looks])
+    return p / p.sum()
+
+
+class PairBatches:
+    """Random (condition, target) batches from paired images (S,K,H,W) and references (S,H,W).
+    `target_p` (S,): how often each skin is the target (default: evenly); the source is then
+    any other skin, evenly."""
+
+    def __init__(self, images: np.ndarray, references: np.ndarray, seed: int,
+                 target_p: np.ndarray | None = None):
         if images.ndim != 4 or references.shape != (images.shape[0], *images.shape[2:]):
             raise ValueError(f"images (S,K,H,W) and references (S,H,W) expected, got "
                              f"{images.shape} and {references.shape}")
+        if target_p is not None:
+            target_p = np.asarray(target_p, np.float64)
+            if target_p.shape != (images.shape[0],) or (target_p < 0).any() or not np.isclose(target_p.sum(), 1.0):
+                raise ValueError(f"target_p must be {images.shape[0]} probabilities summing to 1, got {target_p}")
+        self.target_p = target_p
         self.images, self.refs = images, references
         self.rng = np.random.default_rng(seed)
         self.square = images.shape[2] == images.shape[3]
@@ -60,9 +86,13 @@ class PairBatches:
         changed_fraction (B,))."""
         s, k = self.images.shape[:2]
         f = self.rng.integers(0, k, batch)
-        a = self.rng.integers(0, s, batch)
-        # b != a whenever there are two skins to choose from
-        b = (a + self.rng.integers(1, s, batch)) % s if s > 1 else a
+        if self.target_p is None:
+            a = self.rng.integers(0, s, batch)
+            # b != a whenever there are two skins to choose from
+            b = (a + self.rng.integers(1, s, batch)) % s if s > 1 else a
+        else:
+            b = self.rng.choice(s, batch, p=self.target_p)
+            a = (b + self.rng.integers(1, s, batch)) % s if s > 1 else b
         stack = np.stack([self.images[a, f], self.refs[a], self.refs[b], self.images[b, f]], 1)
         stack = np.stack([self._symmetry(x, int(g)) for x, g in
                           zip(stack, self.rng.integers(0, 8 if self.square else 4, batch))])

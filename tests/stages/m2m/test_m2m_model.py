@@ -6,7 +6,7 @@ import torch
 from stages.m2m import load_translator
 from stages.m2m.model import (Translator, alphas_cumprod, build, default_config, sample, state_arrays,
                               weights_of)
-from stages.m2m.train import PairBatches, loss_fn, noisy_input
+from stages.m2m.train import PairBatches, loss_fn, noisy_input, target_probabilities
 
 
 def _model(size=(32, 32), width=8, seed=0):
@@ -181,3 +181,39 @@ def test_change_share_per_skin_weighs_every_example_of_a_skin_alike():
     # a skin that never changes gets the weight of one changed pixel in 64, not a division by 0
     zero = float(loss_fn(copy, r, r, change_share=0.5, changed_fraction=torch.zeros(2)))
     assert np.isfinite(zero) and zero == pytest.approx(float(loss_fn(copy, r)), rel=1e-6)
+
+
+def test_target_probabilities_split_the_balanced_share_over_looks():
+    looks = ["gelsight"] * 8 + ["tactip", "taxel", "taxel"]
+    np.testing.assert_allclose(target_probabilities(looks, 0.0), np.full(11, 1 / 11))
+    full = target_probabilities(looks, 1.0)
+    np.testing.assert_allclose(full, [1 / 24] * 8 + [1 / 3, 1 / 6, 1 / 6])
+    half = target_probabilities(looks, 0.5)
+    np.testing.assert_allclose(half[8], 0.5 / 11 + 0.5 / 3)          # TacTip: 0.212
+    np.testing.assert_allclose(half.sum(), 1.0)
+    with pytest.raises(ValueError, match="target_balance must be in"):
+        target_probabilities(looks, 1.5)
+
+
+def test_pair_batches_draw_targets_by_target_p_and_never_the_source():
+    """Each skin's images are filled with its index, so a batch tells which skin was the source
+    (channel 0) and which the target; 4000 draws land within 2% of target_p."""
+    s, size = 4, 8
+    levels = np.array([0, 255, 0, 255], np.uint8)       # binary skins: tell them by their reference
+    images = np.repeat(levels[:, None, None, None], 3, 1).repeat(size, 2).repeat(size, 3)
+    refs = np.zeros((s, size, size), np.uint8)
+    for i in range(s):
+        refs[i, i, :] = 255                             # row i marks skin i
+    p = np.array([0.1, 0.2, 0.3, 0.4])
+    cond, _, _ = PairBatches(images, refs, seed=0, target_p=p)(4000)
+    # the target reference's marked row (or column, after a transpose; either end after a flip)
+    tref = cond[:, 2].numpy() > 0
+    rows = tref.all(2).argmax(1) + np.where(tref.all(2).any(1), 0, tref.all(1).argmax(1))
+    sref = cond[:, 1].numpy() > 0
+    srows = sref.all(2).argmax(1) + np.where(sref.all(2).any(1), 0, sref.all(1).argmax(1))
+    target = np.minimum(rows, size - 1 - rows)          # flips map row i to size-1-i
+    source = np.minimum(srows, size - 1 - srows)
+    np.testing.assert_allclose(np.bincount(target, minlength=s) / 4000, p, atol=0.02)
+    assert (target != source).all()
+    with pytest.raises(ValueError, match="target_p must be 4 probabilities"):
+        PairBatches(images, refs, seed=0, target_p=[0.5, 0.5, 0.5, 0.5])
