@@ -87,12 +87,12 @@ def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_
     frames, rows = paired_table(markers, skins, train_indenters, per_skin)
     images, refs = _paired_arrays(markers, skins, rows, config["size"])
     _distinct_references(skins, refs, title)
-    target_p = None
-    if float(target_balance) > 0:
-        target_p = target_probabilities([attrs_of(markers[s]).get("look", s) for s in skins],
-                                        float(target_balance))
+    # a skin whose markers carry no `look` is a look of its own
+    share = target_probabilities([attrs_of(markers[s]).get("look", s) for s in skins], float(target_balance))
     with torch_threads():
-        hist = fit(net, config, PairBatches(images, refs, seed, target_p), steps=int(steps),
+        # balance 0 keeps PairBatches' even draw (and its random stream)
+        batches = PairBatches(images, refs, seed, share if float(target_balance) > 0 else None)
+        hist = fit(net, config, batches, steps=int(steps),
                    batch_size=int(batch_size), lr=float(lr), seed=int(seed),
                    change_weight=float(change_weight), change_share=float(change_share),
                    progress=title)
@@ -108,8 +108,7 @@ def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_
                   "pairs": int(len(frames)), "steps": int(steps), "batch_size": int(batch_size),
                   "lr": float(lr), "seed": int(seed), "change_weight": float(change_weight),
                   "change_share": float(change_share), "target_balance": float(target_balance),
-                  "target_share": {s: round(float(v), 4) for s, v in
-                                   zip(skins, target_p if target_p is not None else np.full(len(skins), 1 / len(skins)))},
+                  "target_share": {s: round(float(v), 4) for s, v in zip(skins, share)},
                   "seconds": round(hist["seconds"], 2),
                   "steps_per_s": round(hist["steps_per_s"], 3),
                   "final_loss": float(np.mean(tail)) if len(tail) else float("nan"),

@@ -196,8 +196,9 @@ def test_target_probabilities_split_the_balanced_share_over_looks():
 
 
 def test_pair_batches_draw_targets_by_target_p_and_never_the_source():
-    """Each skin's images are filled with its index, so a batch tells which skin was the source
-    (channel 0) and which the target; 4000 draws land within 2% of target_p."""
+    """Skin i's reference marks line i, so the reference channels of a batch tell which skin was
+    the source (channel 1) and which the target (channel 2); 4000 draws land within 2% of
+    target_p."""
     s, size = 4, 8
     levels = np.array([0, 255, 0, 255], np.uint8)       # binary skins: tell them by their reference
     images = np.repeat(levels[:, None, None, None], 3, 1).repeat(size, 2).repeat(size, 3)
@@ -206,13 +207,16 @@ def test_pair_batches_draw_targets_by_target_p_and_never_the_source():
         refs[i, i, :] = 255                             # row i marks skin i
     p = np.array([0.1, 0.2, 0.3, 0.4])
     cond, _, _ = PairBatches(images, refs, seed=0, target_p=p)(4000)
-    # the target reference's marked row (or column, after a transpose; either end after a flip)
-    tref = cond[:, 2].numpy() > 0
-    rows = tref.all(2).argmax(1) + np.where(tref.all(2).any(1), 0, tref.all(1).argmax(1))
-    sref = cond[:, 1].numpy() > 0
-    srows = sref.all(2).argmax(1) + np.where(sref.all(2).any(1), 0, sref.all(1).argmax(1))
-    target = np.minimum(rows, size - 1 - rows)          # flips map row i to size-1-i
-    source = np.minimum(srows, size - 1 - srows)
+
+    def skin(channel):
+        """The marked line of each reference: a full row, or a full column after a transpose;
+        a flip maps line i to size-1-i."""
+        ref = cond[:, channel].numpy() > 0
+        rows, cols = ref.all(2), ref.all(1)
+        line = np.where(rows.any(1), rows.argmax(1), cols.argmax(1))
+        return np.minimum(line, size - 1 - line)
+
+    target, source = skin(2), skin(1)
     np.testing.assert_allclose(np.bincount(target, minlength=s) / 4000, p, atol=0.02)
     assert (target != source).all()
     with pytest.raises(ValueError, match="target_p must be 4 probabilities"):
