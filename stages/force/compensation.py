@@ -25,6 +25,20 @@ shear gains: a calibration with a shear leg at d_max (calibration_trajectory she
 gain = sum |F_xy| / sum |F_z| over its shear-out frames, and shear labels are scaled by
 r(d) * gain_target / gain_source.  Without a shear leg on both sides "axes" is "normal".
 
+Depth: each curve is a function of its own sensor's normalised depth (depth / the sensor's
+calibration d_max).  A location-paired frame presses every sensor to the same fraction of its
+collection depth, which is the same normalised depth only when each sensor's d_max is its
+collection depth (the paper's heterogeneous calibrations: 1 mm GelSight and uSkin, 4.5 mm
+TacTip).  Where they differ (the twins' GelSight is calibrated to the material study's 1.4 mm
+but collected to 1 mm, so its frames reach normalised depth 0.714 while uSkin's and TacTip's
+reach 1), ``depth_ratio`` k maps the source's normalised depth d to the target's, k d, with
+k = the target collection's deepest normalised depth / the source's (:func:`depth_ratio`), and
+
+    r(d) = P_target(k d) / P_source(d) = k (a_t k d + b_t) / (a_s d + b_s).
+
+k = 1 (sensors of one depth range, every homogeneous and material pair) is the formula above
+exactly.
+
 Which curve a frame uses: phase 0 (press) loading; phases 1 and 2 (shear out and back, at
 constant depth right after pressing) loading too, since the elastomer has not been unloaded
 (the simulation twin uses the loading stiffness there); phase 3 (release) unloading.  A
@@ -123,18 +137,40 @@ def loading_mask(phase) -> np.ndarray:
     return ~np.isin(phase, UNLOADING_PHASES)
 
 
-def label_scale(normalised_depth, loading, source: Curves, target: Curves, eps: float = 1e-6) -> np.ndarray:
-    """r(d) = P_target(d) / P_source(d) per frame, in the divided (slope) form; see the module."""
+def depth_ratio(source_depth, target_depth) -> float:
+    """k: the target's normalised depth per unit of the source's at a location-paired frame,
+    from the two collections' normalised depths (N,): the ratio of their deepest frames, the
+    protocol's common depth 1."""
+    deepest = []
+    for name, d in (("source", source_depth), ("target", target_depth)):
+        d = np.asarray(d, float)
+        top = float(np.max(d)) if d.size else float("nan")
+        if not (np.isfinite(top) and top > 0):
+            raise ValueError(f"depth_ratio: the {name} collection's normalised depth has no positive "
+                             f"maximum (got {top})")
+        deepest.append(top)
+    return deepest[1] / deepest[0]
+
+
+def label_scale(normalised_depth, loading, source: Curves, target: Curves, eps: float = 1e-6,
+                depth_ratio: float = 1.0) -> np.ndarray:
+    """r(d) = P_target(k d) / P_source(d) per frame (k = depth_ratio), in the divided (slope)
+    form; see the module."""
     d = np.maximum(np.asarray(normalised_depth, float), 0.0)
     loading = np.asarray(loading, bool)
     if d.shape != loading.shape:
         raise ValueError(f"label_scale: normalised_depth {d.shape} and loading {loading.shape} differ")
+    k = float(depth_ratio)
+    if not (np.isfinite(k) and k > 0):
+        raise ValueError(f"label_scale: depth_ratio must be a positive number, got {depth_ratio!r}")
 
-    def slope(c: Curves):
+    def slope(c: Curves, x):
         (al, bl, _), (au, bu, _) = c.loading, c.unloading
-        return np.maximum(np.where(loading, al * d + bl, au * d + bu), eps)
+        return np.maximum(np.where(loading, al * x + bl, au * x + bu), eps)
 
-    return slope(target) / slope(source)
+    if k == 1.0:
+        return slope(target, d) / slope(source, d)
+    return k * slope(target, k * d) / slope(source, d)
 
 
 def shear_ratio(source: Curves, target: Curves, mode: str) -> float:
@@ -150,19 +186,20 @@ def shear_ratio(source: Curves, target: Curves, mode: str) -> float:
 
 
 def compensate(force, normalised_depth, loading, source: Curves, target: Curves,
-               eps: float = 1e-6, *, mode: str = "normal") -> np.ndarray:
+               eps: float = 1e-6, *, mode: str = "normal", depth_ratio: float = 1.0) -> np.ndarray:
     """Source labels rescaled to the target's material: Fz * r per frame, Fx and Fy * r times
-    shear_ratio (mode "axes"; "normal" scales them by r like Fz, the paper's).
+    shear_ratio (mode "axes"; "normal" scales them by r like Fz, the paper's); r evaluates the
+    target's curve at depth_ratio times the source's normalised depth.
 
-    Identical source and target curves return the labels unchanged (bit for bit).
+    Identical source and target curves at depth_ratio 1 return the labels unchanged (bit for bit).
     """
     force = np.asarray(force)
     if force.ndim != 2 or force.shape[1] != 3:
         raise ValueError(f"compensate: force must be (N,3), got {force.shape}")
     shear = shear_ratio(source, target, mode)
-    if source == target:
+    if source == target and depth_ratio == 1.0:
         return force.copy()
-    scale = label_scale(normalised_depth, loading, source, target, eps)
+    scale = label_scale(normalised_depth, loading, source, target, eps, depth_ratio)
     if scale.shape != force.shape[:1]:
         raise ValueError(f"compensate: {force.shape[0]} forces but {scale.shape[0]} depths")
     return (force * scale[:, None] * np.array([shear, shear, 1.0])).astype(force.dtype)

@@ -25,6 +25,10 @@ TRAIN_DEFAULTS = {
     "finetune_lr_factor": 0.1,    # fine-tune stage learning rate = lr * factor
 }
 METHODS = ("source_only", "genforce", "genforce_comp", "oracle")
+# diagnostic row of the studies: the source's test labels compensated as transfer compensates
+# its training labels, scored against the target's labels on the location-paired test frames
+# (what genforce_comp would score if it reproduced its labels exactly: the compensation's bound)
+LABELS = "labels_comp"
 _COLOURS = {"source_only": "C3", "genforce": "C0", "genforce_comp": "C2", "oracle": "0.45"}
 
 
@@ -99,7 +103,8 @@ def fit_own(*, markers: Mapping, skin: str, train_indenters: Sequence[str], conf
 def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_calibration: Mapping,
                  source: str, target: str, config: Mapping, steps: int, batch_size: int, lr: float,
                  seed: int, finetune_steps: int, train_indenters: Sequence[str] | None = None,
-                 compensation: str = "normal",
+                 compensation: str = "normal", compensation_depth: str = "shared",
+                 target_markers: Mapping | None = None,
                  source_spec: Mapping | None = None, target_spec: Mapping | None = None) -> dict:
     """Node `transfer[source,target]`: regressors on the source's sequences translated into the
     target's style (images; reference = the target's), trained with the source's labels
@@ -113,6 +118,10 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     material) the compensation is the identity and genforce_comp is genforce's weights, not
     retrained (attrs compensation_identity true).  `compensation` is the mode of
     stages.force.compensation: "normal" (the paper's) or "axes" (shear gains too).
+    `compensation_depth`: "shared" evaluates both curves at the source's normalised depth;
+    "paired" evaluates the target's at the target's own normalised depth of the paired frame,
+    k times the source's (compensation.depth_ratio, from the normalised depths of the source's
+    and `target_markers`' collections; no target label is read).
     """
     from stages.force.compensation import (compensate, curves_figure, curves_from_calibration,
                                            label_scale, loading_mask, shear_ratio)
@@ -128,8 +137,9 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     force = np.asarray(translated["force"], np.float32)
     depth = np.asarray(translated["normalised_depth"], float)
     loading = loading_mask(np.asarray(translated["phase"]))
-    identity = src_curves == tgt_curves
-    comp = compensate(force, depth, loading, src_curves, tgt_curves, mode=compensation)
+    k = _depth_ratio(compensation_depth, depth, target_markers, f"fit_transfer[{source}->{target}]")
+    identity = src_curves == tgt_curves and k == 1.0
+    comp = compensate(force, depth, loading, src_curves, tgt_curves, mode=compensation, depth_ratio=k)
     seqs = make_sequences(_read_runs(translated, "images", runs), [force[a:b] for a, b in runs],
                           reference, model_cfg)
     kwargs = dict(steps=int(steps), finetune_steps=int(finetune_steps), batch_size=int(batch_size),
@@ -152,7 +162,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
         models["genforce_comp"] = genforce_comp
     rows = np.concatenate([np.arange(a, b) for a, b in runs])
     scale = (np.ones(rows.size) if identity else
-             label_scale(depth[rows], loading[rows], src_curves, tgt_curves))
+             label_scale(depth[rows], loading[rows], src_curves, tgt_curves, depth_ratio=k))
     figures = {"loss": loss_figure(histories, name),
                "compensation": curves_figure({source: (source_calibration, src_curves),
                                               target: (target_calibration, tgt_curves)},
@@ -160,6 +170,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     return {"genforce": weights, "genforce_comp": weights_comp,
             "attrs": {"config": genforce.config, "train": train, "source": source, "target": target,
                       "compensation_identity": bool(identity), "compensation": compensation,
+                      "compensation_depth": compensation_depth, "depth_ratio": k,
                       "shear_ratio": shear_ratio(src_curves, tgt_curves, compensation),
                       "force_range": {m: {"min": mdl.config["force_min"], "max": mdl.config["force_max"]}
                                       for m, mdl in models.items()},
@@ -171,6 +182,22 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
             "figures": figures}
 
 
+DEPTH_MODES = ("shared", "paired")
+
+
+def _depth_ratio(mode: str, source_depth, target_markers, name: str) -> float:
+    """k of compensation_depth `mode`: 1 for "shared", the collections' ratio for "paired"."""
+    from stages.force.compensation import depth_ratio
+    if mode not in DEPTH_MODES:
+        raise ValueError(f"{name}: compensation_depth {mode!r} is not one of {DEPTH_MODES}")
+    if mode == "shared":
+        return 1.0
+    if target_markers is None or "normalised_depth" not in target_markers:
+        raise ValueError(f"{name}: compensation_depth 'paired' needs the target's collection "
+                         "(target_markers with normalised_depth)")
+    return depth_ratio(source_depth, np.asarray(target_markers["normalised_depth"]))
+
+
 # ---------------------------------------------------------------------------- study node
 
 def _test_set(art, test_indenters):
@@ -180,8 +207,29 @@ def _test_set(art, test_indenters):
     rows = np.concatenate([np.arange(a, b) for a, b in runs])
     return {"images": np.concatenate(_read_runs(art, "images", runs)),
             "contact_id": np.asarray(art["contact_id"])[rows],
+            "frame": np.asarray(art["frame"])[rows] if "frame" in art else None,
             "force": np.asarray(art["force"], np.float32)[rows],
             "reference": np.asarray(art["reference"])}
+
+
+def compensated_test_labels(source_art, transfer_art, test_indenters, target_frames):
+    """(N,3) the source's test-contact labels compensated with transfer_art's recorded curves,
+    mode and depth ratio, in the order of the target's test frames; None when the frames are
+    not location-paired (no `frame` labels, or they differ) or the transfer records no curves."""
+    from stages.force.compensation import Curves, compensate, loading_mask
+    attrs = attrs_of(transfer_art)
+    if target_frames is None or "frame" not in source_art or "curves" not in attrs:
+        return None
+    rows = np.concatenate([np.arange(a, b) for a, b in contact_runs(source_art, test_indenters)])
+    if not np.array_equal(np.asarray(source_art["frame"])[rows], target_frames):
+        return None
+    force = np.asarray(source_art["force"], np.float32)[rows]
+    if attrs.get("compensation_identity", False):
+        return force
+    return compensate(force, np.asarray(source_art["normalised_depth"], float)[rows],
+                      loading_mask(np.asarray(source_art["phase"])[rows]),
+                      Curves.from_dict(attrs["curves"]["source"]), Curves.from_dict(attrs["curves"]["target"]),
+                      mode=attrs.get("compensation", "normal"), depth_ratio=float(attrs.get("depth_ratio", 1.0)))
 
 
 def force_study(*, study: str, pairs: Sequence[Sequence[str]], own: Mapping[str, Mapping],
@@ -196,7 +244,9 @@ def force_study(*, study: str, pairs: Sequence[Sequence[str]], own: Mapping[str,
       oracle         own[target] (trained on the target's own labels)
 
     Every model sees the target's images with the target's reference.  Metrics
-    `<study>/<source>_<target>/<method>/<metric>` and `<study>/mean/<method>/<metric>`;
+    `<study>/<source>_<target>/<method>/<metric>` and `<study>/mean/<method>/<metric>`, plus
+    the diagnostic method `labels_comp` (LABELS: compensated_test_labels scored the same way)
+    where the source's test frames are location-paired with the target's;
     arrays mae/<method> (pairs, 4: fx, fy, fz, total), r2/<method> (pairs, 3), pairs
     ("source_target"), sources, targets, trace/*; figures radar (MAE), r2_hist, trace, violin.
     """
@@ -238,11 +288,21 @@ def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_fra
         for m in METHODS:
             for k, v in scores[m].items():
                 metrics[f"{study}/{s}_{t}/{m}/{k}"] = v
+        labels = (compensated_test_labels(markers[s], tr, test_indenters, test["frame"])
+                  if s in markers else None)
+        if labels is not None:
+            for k, v in force_metrics(labels, test["force"]).items():
+                metrics[f"{study}/{s}_{t}/{LABELS}/{k}"] = v
         per_pair.append({"source": s, "target": t, "scores": scores,
                          "errors": {m: preds[m] - test["force"] for m in METHODS}, "preds": preds})
     for m in METHODS:
         for k in METRICS:
             metrics[f"{study}/mean/{m}/{k}"] = float(np.mean([p["scores"][m][k] for p in per_pair]))
+    for k in METRICS:
+        have = [metrics[f"{study}/{s}_{t}/{LABELS}/{k}"] for s, t in pairs
+                if f"{study}/{s}_{t}/{LABELS}/{k}" in metrics]
+        if len(have) == len(pairs):
+            metrics[f"{study}/mean/{LABELS}/{k}"] = float(np.mean(have))
 
     mae = {m: np.array([[p["scores"][m][k] for k in ("mae_fx", "mae_fy", "mae_fz", "mae_total")]
                         for p in per_pair]) for m in METHODS}

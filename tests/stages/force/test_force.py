@@ -171,6 +171,32 @@ def test_loading_and_unloading_curves_by_phase():
         loading_mask([0, 5])
 
 
+def test_paired_depth_maps_the_source_depth_onto_the_target_curve():
+    """A sensor calibrated deeper than it was collected (d_max 1.4 mm, collected to 1 mm: its
+    frames reach 1/1.4) paired with one calibrated to its collection depth: the target's curve
+    is read at k d, k = 1.4, and k = 1 is the shared-depth formula exactly."""
+    from stages.force.compensation import depth_ratio
+    k = depth_ratio(np.linspace(0, 1 / 1.4, 9), np.linspace(0, 1, 9))
+    assert k == pytest.approx(1.4)
+    assert depth_ratio([0.0, 0.5, 1.0], [0.0, 0.25, 0.5]) == 0.5
+    source = Curves(loading=(0.0, 2.0, 0.0), unloading=(0.0, 1.0, 0.0))   # P_s = 2 d, d on unloading
+    target = Curves(loading=(1.0, 1.0, 0.0), unloading=(0.0, 3.0, 0.0))   # P_t = d^2 + d, 3 d
+    depth, loading = np.array([0.5, 0.25, 0.0, 0.5]), np.array([True, True, True, False])
+    # P_t(1.4 d) / P_s(d): (0.49 + 0.7) / 1 = 1.19; (0.1225 + 0.35) / 0.5 = 0.945; d -> 0: 1.4 / 2
+    # = 0.7; unloading 3 * 0.7 / 0.5 = 4.2
+    np.testing.assert_allclose(label_scale(depth, loading, source, target, depth_ratio=k),
+                               [1.19, 0.945, 0.7, 4.2], rtol=1e-9)
+    np.testing.assert_array_equal(label_scale(depth, loading, source, target, depth_ratio=1.0),
+                                  label_scale(depth, loading, source, target))
+    force = np.tile([1.0, -1.0, -2.0], (4, 1)).astype(np.float32)
+    same = compensate(force, depth, loading, source, source, depth_ratio=k)    # same curves, k != 1
+    np.testing.assert_allclose(same[:, 2], -2.0 * np.array([1.4, 1.4, 1.4, 1.4]), rtol=1e-6)
+    with pytest.raises(ValueError, match="target collection's normalised depth"):
+        depth_ratio([0.2, 0.5], [0.0, 0.0])
+    with pytest.raises(ValueError, match="depth_ratio must be a positive"):
+        label_scale(depth, loading, source, target, depth_ratio=-1.0)
+
+
 def _sheared_calibration(scale, gain, n=10, m=4):
     """_calibration's loading and unloading with a shear leg at d = 1 between them (phases 1,
     2): |F_xy| = gain * |Fz| * j / m at step j of m out and back, Fz held."""
@@ -324,6 +350,32 @@ def test_fit_transfer_axes_mode_and_auto_ranges(skins, tiny_config):
         np.testing.assert_allclose(lo, np.where(np.isnan(span), lo, y.min(0) - 0.05 * span), rtol=1e-4, atol=1e-5)
     plain = fit_transfer(source_calibration=cal["s"], target_calibration=cal["t"], compensation="normal", **kw)
     assert plain["attrs"]["shear_ratio"] == 1.0
+    assert plain["attrs"]["compensation_depth"] == "shared" and plain["attrs"]["depth_ratio"] == 1.0
+
+
+def test_fit_transfer_paired_depth(skins, tiny_config):
+    """compensation_depth "paired" reads k from the target collection's normalised depth; the
+    same calibration on both sides is then no identity when k != 1."""
+    kw = dict(config={**tiny_config, "seq_len": 10}, steps=1, batch_size=2, lr=0.05, seed=0,
+              finetune_steps=0, train_indenters=["sphere"], source="B", target="A",
+              translated=skins["A"], source_calibration=_calibration_art(1.0),
+              target_calibration=_calibration_art(1.0))
+    deeper = {"normalised_depth": 2.0 * skins["A"]["normalised_depth"]}
+    out = fit_transfer(compensation_depth="paired", target_markers=deeper, **kw)
+    assert out["attrs"]["depth_ratio"] == pytest.approx(2.0)
+    assert out["attrs"]["compensation_identity"] is False
+    # P(d) = d^2 + 2 d on both branches (unloading x 0.8): r = 2 (2 d + 2) / (d + 2), increasing
+    rows = np.concatenate([np.arange(a, b) for a, b in contact_runs(skins["A"], ["sphere"])])
+    d = np.asarray(skins["A"]["normalised_depth"], float)[rows]
+    r = lambda x: 2 * (2 * x + 2) / (x + 2)
+    assert out["attrs"]["label_scale"]["min"] == pytest.approx(r(d.min()))
+    assert out["attrs"]["label_scale"]["max"] == pytest.approx(r(d.max()))
+    same = fit_transfer(compensation_depth="paired", target_markers=skins["A"], **kw)
+    assert same["attrs"]["depth_ratio"] == 1.0 and same["attrs"]["compensation_identity"] is True
+    with pytest.raises(ValueError, match=r"fit_transfer\[B->A\]: compensation_depth 'paired' needs"):
+        fit_transfer(compensation_depth="paired", **kw)
+    with pytest.raises(ValueError, match="compensation_depth 'deepest' is not one of"):
+        fit_transfer(compensation_depth="deepest", target_markers=skins["A"], **kw)
 
 
 def test_force_study_metrics_and_figures(nodes_out, skins):
@@ -332,9 +384,16 @@ def test_force_study_metrics_and_figures(nodes_out, skins):
                       transfer={"source=A,target=B": same, "source=B,target=A": stiffer},
                       markers=skins, test_indenters=["torus"], trace_frames=20)
     m = out["metrics"]
-    assert len(m) == 2 * 4 * 7 + 4 * 7
+    assert len(m) == 2 * 5 * 7 + 5 * 7                   # 4 methods and labels_comp, 2 pairs + mean
     rows = np.flatnonzero(np.isin(skins["A"]["contact_id"], [3, 7, 11]))     # the torus contacts
     truth = skins["A"]["force"][rows]
+    # labels_comp: A -> B is the identity on shared labels; B -> A doubles them (target 2x stiffer)
+    assert m["toy/A_B/labels_comp/mae_total"] == 0.0 and m["toy/A_B/labels_comp/r2_fz"] == 1.0
+    doubled = compensate(truth, skins["A"]["normalised_depth"][rows], loading_mask(skins["A"]["phase"][rows]),
+                         fit_curves(*_calibration(1.0)), fit_curves(*_calibration(2.0)))
+    np.testing.assert_allclose(doubled, 2.0 * truth, rtol=1e-5)
+    assert m["toy/B_A/labels_comp/mae_fz"] == pytest.approx(np.abs(truth[:, 2]).mean(), rel=1e-5)
+    assert m["toy/mean/labels_comp/mae_fz"] == pytest.approx(m["toy/B_A/labels_comp/mae_fz"] / 2)
     oracle = predict_contacts(load_model(own["A"]), skins["A"]["images"][rows],
                               skins["A"]["contact_id"][rows], skins["A"]["reference"])
     assert m["toy/B_A/oracle/mae_fz"] == pytest.approx(force_metrics(oracle, truth)["mae_fz"])
