@@ -27,7 +27,7 @@ TRAIN_DEFAULTS = {
 METHODS = ("source_only", "genforce", "genforce_comp", "oracle")
 # diagnostic row of the studies: the source's test labels compensated as transfer compensates
 # its training labels, scored against the target's labels on the location-paired test frames
-# (what genforce_comp would score if it reproduced its labels exactly: the compensation's bound)
+# (what genforce_comp would score if it reproduced its labels exactly: the compensation's own error)
 LABELS = "labels_comp"
 _COLOURS = {"source_only": "C3", "genforce": "C0", "genforce_comp": "C2", "oracle": "0.45"}
 
