@@ -226,10 +226,12 @@ def compensated_test_labels(source_art, transfer_art, test_indenters, target_fra
     force = np.asarray(source_art["force"], np.float32)[rows]
     if attrs.get("compensation_identity", False):
         return force
+    curves = attrs["curves"]
     return compensate(force, np.asarray(source_art["normalised_depth"], float)[rows],
                       loading_mask(np.asarray(source_art["phase"])[rows]),
-                      Curves.from_dict(attrs["curves"]["source"]), Curves.from_dict(attrs["curves"]["target"]),
-                      mode=attrs.get("compensation", "normal"), depth_ratio=float(attrs.get("depth_ratio", 1.0)))
+                      Curves.from_dict(curves["source"]), Curves.from_dict(curves["target"]),
+                      mode=attrs.get("compensation", "normal"),
+                      depth_ratio=float(attrs.get("depth_ratio", 1.0)))
 
 
 def force_study(*, study: str, pairs: Sequence[Sequence[str]], own: Mapping[str, Mapping],
