@@ -168,9 +168,7 @@ def label_scale(normalised_depth, loading, source: Curves, target: Curves, eps: 
         (al, bl, _), (au, bu, _) = c.loading, c.unloading
         return np.maximum(np.where(loading, al * x + bl, au * x + bu), eps)
 
-    if k == 1.0:
-        return slope(target, d) / slope(source, d)
-    return k * slope(target, k * d) / slope(source, d)
+    return k * slope(target, k * d) / slope(source, d)     # k = 1: exact, x * 1.0 == x
 
 
 def shear_ratio(source: Curves, target: Curves, mode: str) -> float:
