@@ -1,4 +1,4 @@
-"""The paper's 18 indenters (plus 2 rigid calibration indenters) as procedural meshes.
+"""The paper's 18 indenters (plus 3 rigid calibration indenters) as procedural meshes.
 
 Frame convention for every indenter mesh (mm):
   * the tip's lowest point is at z = 0 and the body extends to +z (the pad surface is the
@@ -32,7 +32,7 @@ INDENTERS: tuple[str, ...] = (
 )
 UNSEEN: tuple[str, ...] = ("dotin", "moon", "pacman", "random", "torus", "wave")
 SEEN: tuple[str, ...] = tuple(n for n in INDENTERS if n not in UNSEEN)
-CALIBRATION_INDENTERS: tuple[str, ...] = ("calib_prism", "calib_cone")
+CALIBRATION_INDENTERS: tuple[str, ...] = ("calib_prism", "calib_cone", "calib_punch")
 # indenter_id in every trajectory indexes this tuple; its first 18 entries are INDENTERS.
 ALL_INDENTERS: tuple[str, ...] = INDENTERS + CALIBRATION_INDENTERS
 
@@ -60,6 +60,7 @@ _DESCRIPTIONS = {
     "wave": ("sinusoidal ridges along y: wavelength 4 mm, 1.2 mm peak-to-valley", 10.0),
     "calib_prism": ("rigid calibration prism: 90 deg knife edge 15 mm long along y", 12.0),
     "calib_cone": ("rigid calibration cone: 90 deg apex, base diameter 12 mm", 12.0),
+    "calib_punch": ("rigid calibration flat punch, diameter 4 mm, height 10 mm", 4.0),
 }
 
 
@@ -213,6 +214,8 @@ def _build(name: str) -> "trimesh.Trimesh":
         return _extrude_xz(Polygon([(0, 0), (6, 6), (-6, 6)]), 15)
     if name == "calib_cone":
         return _revolve([[0, 0], [6, 6], [0, 6]])
+    if name == "calib_punch":
+        return _revolve([[0, 0], [2, 0], [2, 10], [0, 10]])
     raise KeyError(f"unknown indenter {name!r}; known: {', '.join(ALL_INDENTERS)}")
 
 
