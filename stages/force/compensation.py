@@ -39,6 +39,15 @@ k = the target collection's deepest normalised depth / the source's (:func:`dept
 k = 1 (sensors of one depth range, every homogeneous and material pair) is the formula above
 exactly.
 
+Calibration indenter: the curves are only a material prior if the indenter's contact does
+not change shape with depth.  A flat punch's does not (F = 2 a E* d on a half-space,
+Sneddon; the pad's thickness only stiffens the slope), so every sensor's punch curve is near
+linear and their ratio is the skins' stiffness ratio.  The paper's prism and cone make
+contacts that grow with depth, and grow differently on TacTip's dome pressed 4.5 mm than on a
+flat pad pressed 1 mm (the twins' prism curves bend a/b = 0.22 on uSkin, 3.2 on TacTip),
+which puts the prism's own shape into every label.  The default calibration is therefore the
+4 mm flat punch `calib_punch` (params.yaml, calibration_trajectory.indenter).
+
 Which curve a frame uses: phase 0 (press) loading; phases 1 and 2 (shear out and back, at
 constant depth right after pressing) loading too, since the elastomer has not been unloaded
 (the simulation twin uses the loading stiffness there); phase 3 (release) unloading.  A

@@ -204,3 +204,26 @@ def test_calibrate_shear_leg(params, indenter_artifact):
     np.testing.assert_allclose(curves.loading, plain_curves.loading, rtol=1e-9)
     assert plain_curves.shear_gain is None
     assert 0.05 < curves.shear_gain < 0.6             # |F_xy| / |Fz| of a 1 mm shear, mu = 0.55
+
+
+@pytest.mark.parametrize("sensor,bend,prism_bend", [("gelsight-r10", 0.01, 0.5), ("uskin", 0.01, 0.15),
+                                                     ("tactip", 0.05, 2.0)])
+def test_calibrate_flat_punch_is_linear(params, indenter_artifact, sensor, bend, prism_bend):
+    """The 4 mm calibration punch keeps its contact area as it presses, so its force grows
+    linearly with depth (Sneddon's F = 2 a E* d on a half-space; the layer only stiffens the
+    slope), on the flat pads and, to within the 0.05 mm its face stands off TacTip's 41.5 mm
+    dome at its edge, on the dome pressed 4.5 mm.  The prism's contact grows with depth, and
+    differently on each sensor: its curve bends, 3x its linear term on the dome (a/b here:
+    GelSight 0.89, uSkin 0.22, TacTip 3.25), so its ratio between two sensors mixes the
+    indenter's shape into the material prior."""
+    from stages.force.compensation import curves_from_calibration
+    spec = params["sensors"][sensor]
+    kw = dict(indenters=indenter_artifact, sensor=sensor, spec=spec, materials=params["materials"])
+    punch = curves_from_calibration(calibrate(
+        trajectory=calibration_trajectory(n_steps=8, repetitions=1, indenter="calib_punch"), **kw))
+    prism = curves_from_calibration(calibrate(
+        trajectory=calibration_trajectory(n_steps=8, repetitions=1, indenter="calib_prism"), **kw))
+    a, b, _ = punch.loading                         # |Fz| = a d^2 + b d, d normalised
+    assert b > 0 and abs(a) < bend * b
+    pa, pb, _ = prism.loading
+    assert pa > prism_bend * pb > 0                 # the prism's curve bends up

@@ -31,6 +31,7 @@ EXPECTED_EXTENTS = {
     "wave": (10, 10, 8),
     "calib_prism": (12, 15, 6),
     "calib_cone": (12, 12, 6),
+    "calib_punch": (4, 4, 10),
 }
 
 
@@ -177,11 +178,12 @@ def test_curved_tip_minimum_at_position(name):
     assert hm[i, j] <= CURVED_MAX[name]
 
 
-def test_flat_punch_contact_area():
+@pytest.mark.parametrize("name,radius", [("cylinder", 4.0), ("calib_punch", 2.0)])
+def test_flat_punch_contact_area(name, radius):
     n, spacing = 128, 20 / 128
-    hm = height_map("cylinder", shape=n, spacing=spacing, position=(0.5, 0.5))
+    hm = height_map(name, shape=n, spacing=spacing, position=(0.5, 0.5))
     area = np.count_nonzero(hm <= 1e-9) * spacing ** 2
-    assert area == pytest.approx(np.pi * 16, rel=0.03)
+    assert area == pytest.approx(np.pi * radius ** 2, rel=0.03)
     assert np.isinf(hm).sum() + np.count_nonzero(hm <= 1e-9) == hm.size  # flat: 0 or absent
 
 
