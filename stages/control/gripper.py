@@ -370,9 +370,10 @@ class GripperTwin:
                     guess = np.linalg.solve(self.table.stiffness(self.gel_mm), self.shear_N)
                     sheared = solve_contact(height, self.gel_mm, shift=tuple(guess), **self.solver)
                     ft = sheared.force[:2]
-                    weight = float(ft @ self.shear_N) / float(ft @ ft)
-                    force = force + weight * (sheared.force - force)
-                    disp = disp + weight * (sheared.displacement - disp)
+                    if float(ft @ ft) > 0:   # the sheared contact carries shear: scale it to shear_N
+                        weight = float(ft @ self.shear_N) / float(ft @ ft)
+                        force = force + weight * (sheared.force - force)
+                        disp = disp + weight * (sheared.displacement - disp)
             self._frame = (self._state_key(), force, disp, _Images(self, disp))
         return self._frame[1], self._frame[2]
 

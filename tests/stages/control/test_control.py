@@ -165,6 +165,29 @@ def test_marker_images_shift_with_the_shear(load, axis):
         assert along > 0.15 and across < 0.2 * along                      # px; ~0.1 mm at 0.4 N
 
 
+def test_sheared_solve_without_tangential_force_keeps_the_pressed_frame(monkeypatch):
+    """A sheared solve whose contact carries no tangential force (it has let go: nothing to
+    scale to the shear load) leaves the frame pressed-only instead of dividing by zero."""
+    import dataclasses
+
+    import stages.control.gripper as gripper_module
+    plum = obj("plum")
+    kw = dict(sensor=SENSOR, material=MATERIAL, grid=(33, 33), size=SIZE,
+              width_m=(plum.width_mm - 1.5) * 1e-3)
+    pressed = GripperTwin(plum, **kw)
+    real = gripper_module.solve_contact
+
+    def let_go(height, depth, shift=(0.0, 0.0), **solver):
+        out = real(height, depth, shift=shift, **solver)
+        return dataclasses.replace(out, force=np.zeros(3)) if any(shift) else out
+
+    sheared = GripperTwin(plum, load=lambda t: np.array([0.0, 0.8]), **kw)
+    monkeypatch.setattr(gripper_module, "solve_contact", let_go)   # after the stiffness table
+    sheared.step(0.05)
+    np.testing.assert_array_equal(sheared.read_sensors()["left"], pressed.read_sensors()["left"])
+    assert sheared.true_force()[2] == pytest.approx(pressed.true_force()[2]) and sheared.true_force()[2] < 0
+
+
 # -- closed loop --------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("name", ["strawberry", "wood_block"])     # 0.4 N/mm ... 80 N/mm
