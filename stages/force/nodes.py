@@ -224,7 +224,8 @@ def compensated_test_labels(source_art, transfer_art, test_indenters, target_fra
     if not np.array_equal(np.asarray(source_art["frame"])[rows], target_frames):
         return None
     curves = attrs["curves"]
-    return compensate(np.asarray(source_art["force"], np.float32)[rows], np.asarray(source_art["normalised_depth"], float)[rows],
+    return compensate(np.asarray(source_art["force"], np.float32)[rows],
+                      np.asarray(source_art["normalised_depth"], float)[rows],
                       loading_mask(np.asarray(source_art["phase"])[rows]),
                       Curves.from_dict(curves["source"]), Curves.from_dict(curves["target"]),
                       mode=attrs.get("compensation", "normal"),
