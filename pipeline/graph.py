@@ -158,7 +158,9 @@ class Graph:
 
         An entry is `var: spec` or, zipped, `"a,b": spec` whose values are [a, b] lists (e.g.
         source/target pairs).  spec is a literal list, a params key (a dict gives its keys), or
-        params keys joined by " + " (their lists concatenated, repeats dropped)."""
+        params keys joined by " + " (their lists concatenated, repeats dropped).  An empty list
+        gives the node no instances: a '[*]' gather of it is then empty, any other reference
+        to it an error."""
         points: list[tuple[tuple[str, Any], ...]] = [()]
         for entry, spec in node.grid.items():
             names = [v.strip() for v in entry.split(",")]
@@ -172,8 +174,8 @@ class Graph:
                     values += [v for v in got if v not in values]
             else:
                 values = spec
-            if not isinstance(values, list) or not values:
-                raise PipelineError(f"node '{node.name}' grid '{entry}' ({spec}) must be a non-empty list")
+            if not isinstance(values, list):
+                raise PipelineError(f"node '{node.name}' grid '{entry}' ({spec}) must be a list")
             rows = []
             for v in values:
                 row = v if len(names) > 1 else [v]
@@ -221,7 +223,7 @@ class Graph:
                     raise PipelineError(f"node '{node.name}' input '{arg}': '{up_name}' has no grid "
                                         f"variable {sorted(unknown)}")
                 match = [c for c in candidates if all(_fmt(dict(c.bindings)[k]) == v for k, v in sel.items())]
-                if not match:
+                if not match and sel:   # "[*]" of a node with no instances gathers nothing
                     raise PipelineError(f"node '{inst.name}' input '{arg}': no instance matches '{ref}'")
                 if set(sel) == set(up_vars):
                     inst.inputs[arg] = match[0].name

@@ -167,8 +167,17 @@ GRAPH.node("hetero", "stages.studies:transfer_study", inputs=_STUDY,
            description="study hetero (paper Fig. 6): GelSight, TacTip, uSkin 3-axis and z-only")
 
 # -- control: the transferred force model in a gripper's loop --------------------------------
+GRAPH.node("transfer_seed", "stages.force.nodes:fit_transfer_seed",
+           inputs={"transfer": "transfer[source={model_pair[0]},target={model_pair[1]}]",
+                   "translated": "translate[source={model_pair[0]},target={model_pair[1]}]"},
+           params={k: v for k, v in _FIT.items() if k != "seed"} | {
+               "finetune_steps": "force.finetune_steps", "train_indenters": "splits.train_indenters",
+               "model_pair": "control.model_pair"},
+           grid={"seed": "control.ensemble_seeds"},
+           description="the control model's genforce_comp trained again from other seeds (its ensemble)")
 GRAPH.node("control", "stages.control.nodes:control_study",
-           inputs={"model": "transfer[source={model_pair[0]},target={model_pair[1]}]"},
+           inputs={"model": "transfer[source={model_pair[0]},target={model_pair[1]}]",
+                   "members": "transfer_seed[*]"},
            params={"model_pair": "control.model_pair", "objects": "control.objects",
                    "grasp": "control.grasp", "slip": "control.slip",
                    # the fingers carry the GelSight gel the model's target skin rides on

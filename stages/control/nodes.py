@@ -22,6 +22,7 @@ from typing import Callable, Mapping
 
 import numpy as np
 
+from stages.common import attrs_of
 from stages.control.controller import OraclePredictor
 from stages.control.episodes import (DEFAULT_CONTROLLER, DEFAULT_PULL, DEFAULT_TWIN, grasp_metrics,
                                      merged_settings, run_episode, slip_metrics)
@@ -41,11 +42,14 @@ def oracle_factory(*, finger: str = "left", noise_N: float = 0.0, lag_frames: in
 def control_study(*, model, objects: Mapping, grasp: list, slip: list, sensor: Mapping,
                   material: Mapping, size, duration_s: float, pull: Mapping, seed: int = 0,
                   twin: Mapping | None = None, controller: Mapping | None = None,
-                  tolerance_N: float = 0.25, model_pair=None) -> dict:
-    """Node `control`.  model_pair: the (source, target) skins of `model`, for the record.  model: an artifact holding force-model weights (loaded with
+                  tolerance_N: float = 0.25, model_pair=None, members: Mapping | None = None) -> dict:
+    """Node `control`.  model_pair: the (source, target) skins of `model`, for the record.
+    model: an artifact holding force-model weights (loaded with
     stages.force.model.load_predictor, prefix "genforce_comp"); None runs the oracle (the
-    twin's true force), the ceiling any model is measured against.  seed: the oracle's noise
-    stream (the model's predictions are deterministic).  See run_study."""
+    twin's true force), the ceiling any model is measured against.  members: more such
+    artifacts (`transfer_seed[*]`: the same model trained from other seeds); the controllers
+    then read the mean of all the models' forces (force.model.MeanPredictor).  seed: the
+    oracle's noise stream (the model's predictions are deterministic).  See run_study."""
     kw = dict(objects=objects, grasp=grasp, slip=slip, sensor=sensor, material=material, size=size,
               duration_s=duration_s, pull=pull, seed=seed, twin=twin, controller=controller,
               tolerance_N=tolerance_N)
@@ -55,8 +59,12 @@ def control_study(*, model, objects: Mapping, grasp: list, slip: list, sensor: M
         out["attrs"]["predictor"] = "oracle"
         return out
     import torch
-    from stages.force.model import load_predictor
+    from stages.force.model import MeanPredictor, load_predictor
+    members = dict(members or {})
     predictor = load_predictor(model, prefix="genforce_comp")
+    if members:
+        predictor = MeanPredictor([predictor] + [load_predictor(members[k], prefix="genforce_comp")
+                                                 for k in sorted(members)])
     threads = torch.get_num_threads()
     torch.set_num_threads(1)             # one frame at a time: extra threads only contend
     try:
@@ -64,6 +72,8 @@ def control_study(*, model, objects: Mapping, grasp: list, slip: list, sensor: M
     finally:
         torch.set_num_threads(threads)
     out["attrs"]["predictor"] = "genforce_comp"
+    out["attrs"]["models"] = 1 + len(members)
+    out["attrs"]["member_seeds"] = [int(attrs_of(members[k])["seed"]) for k in sorted(members)]
     return out
 
 

@@ -40,7 +40,7 @@ prediction time.  Weights serialise to plain arrays (:func:`to_arrays` / :func:`
 """
 from __future__ import annotations
 
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 import torch
@@ -351,6 +351,24 @@ class StreamingPredictor:
 
 
 # ---------------------------------------------------------------------------- serialisation
+
+class MeanPredictor:
+    """Several streaming predictors on the same frames, read as one: the mean of their forces.
+    Models trained from different seeds err differently at a contact they never saw; their
+    mean varies less from one training run to the next than any one of them."""
+
+    def __init__(self, predictors: Sequence):
+        self.predictors = list(predictors)
+        if not self.predictors:
+            raise ValueError("MeanPredictor needs at least one predictor")
+
+    def reset(self, reference=None) -> None:
+        for p in self.predictors:
+            p.reset(reference)
+
+    def step(self, image) -> np.ndarray:
+        return np.mean([p.step(image) for p in self.predictors], axis=0).astype(np.float32)
+
 
 def to_arrays(model: ForceRegressor) -> dict[str, np.ndarray]:
     """Every parameter and buffer as a numpy array, keyed by its state-dict name (scalars,

@@ -185,6 +185,45 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
 DEPTH_MODES = ("shared", "paired")
 
 
+def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, config: Mapping,
+                      steps: int, batch_size: int, lr: float, finetune_steps: int,
+                      train_indenters: Sequence[str] | None = None, model_pair=None) -> dict:
+    """Node `transfer_seed[seed]`: `transfer`'s genforce_comp model trained again from another
+    seed: the same translated contacts of `train_indenters`, the same labels (compensated with
+    the curves, mode and depth ratio stored in `transfer`'s attrs) and the same two-stage
+    schedule.  Models of several seeds differ only by chance; their mean is a steadier force
+    reading than any one of them (the control study's ensemble; model_pair: transfer's
+    (source, target), which the graph's templates read).  Returns genforce_comp
+    weights and attrs {config, source, target, seed, history}."""
+    from stages.force.compensation import Curves, compensate, loading_mask
+    from stages.force.model import to_arrays
+    from stages.force.train import fit_two_stage, make_sequences
+    info = attrs_of(transfer)
+    name = f"transfer[{info['source']}->{info['target']}] seed {seed}"
+    model_cfg, train = _split_config(config)
+    runs = contact_runs(translated, train_indenters)
+    if not runs:
+        raise ValueError(f"{name}: no translated contacts to train on")
+    reference = np.asarray(translated["reference"])
+    force = np.asarray(translated["force"], np.float32)
+    if not info["compensation_identity"]:
+        curves = {k: Curves.from_dict(v) for k, v in info["curves"].items()}
+        force = compensate(force, np.asarray(translated["normalised_depth"], float),
+                           loading_mask(np.asarray(translated["phase"])), curves["source"],
+                           curves["target"], mode=info["compensation"],
+                           depth_ratio=float(info["depth_ratio"]))
+    seqs = make_sequences(_read_runs(translated, "images", runs), [force[a:b] for a, b in runs],
+                          reference, model_cfg)
+    model, history = fit_two_stage(seqs, model_cfg, steps=int(steps), finetune_steps=int(finetune_steps),
+                                   batch_size=int(batch_size), lr=float(lr), seed=int(seed),
+                                   seq_len=int(train["seq_len"]),
+                                   finetune_lr_factor=float(train["finetune_lr_factor"]), desc=name)
+    model.set_reference(reference)
+    return {"genforce_comp": to_arrays(model),
+            "attrs": {"config": model.config, "train": train, "source": info["source"],
+                      "target": info["target"], "seed": int(seed), "history": history}}
+
+
 def _depth_ratio(mode: str, source_depth, target_markers, name: str) -> float:
     """k of compensation_depth `mode`: 1 for "shared", the collections' ratio for "paired"."""
     from stages.force.compensation import depth_ratio

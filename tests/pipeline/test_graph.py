@@ -132,3 +132,21 @@ def test_zipped_grid_and_template_errors(change, message):
     with pytest.raises(PipelineError) as err:
         zipped_graph().expand(params)
     assert message in str(err.value)
+
+
+def test_empty_grid_has_no_instances_and_gathers_nothing():
+    g = Graph()
+    g.node("model", "m:m")
+    g.node("member", "m:e", inputs={"model": "model"}, grid={"seed": "seeds"})
+    g.node("use", "m:u", inputs={"model": "model", "members": "member[*]"})
+    inst = g.expand({"seeds": []})
+    assert list(inst) == ["model", "use"]
+    assert inst["use"].inputs == {"model": "model", "members": {}}
+    assert g.expand({"seeds": [1, 2]})["use"].inputs["members"] == {"1": "member[seed=1]",
+                                                                     "2": "member[seed=2]"}
+    # a reference that needs one instance still fails
+    g.node("one", "m:o", inputs={"m": "member[seed=1]"})
+    with pytest.raises(PipelineError, match=r"input 'm': no instance matches 'member\[seed=1\]'"):
+        g.expand({"seeds": []})
+    with pytest.raises(PipelineError, match=r"grid 'seed' \(seeds\) must be a list"):
+        g.expand({"seeds": 3})

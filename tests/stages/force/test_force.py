@@ -10,10 +10,10 @@ from sklearn.metrics import mean_absolute_error, r2_score
 from stages.force.compensation import (Curves, compensate, fit_curves, label_scale, loading_mask,
                                        shear_ratio)
 from stages.force.metrics import METRICS, force_metrics
-from stages.force.model import (ForceRegressor, StreamingPredictor, from_arrays, load_model,
+from stages.force.model import (ForceRegressor, MeanPredictor, StreamingPredictor, from_arrays, load_model,
                                 load_predictor, model_config, predict_contacts, predict_sequence,
                                 resolve_range, to_arrays)
-from stages.force.nodes import METHODS, contact_runs, fit_own, fit_transfer, force_study
+from stages.force.nodes import METHODS, contact_runs, fit_own, fit_transfer, fit_transfer_seed, force_study
 from stages.force.train import fit, make_sequences
 
 from force_synthetic import contact_artifact
@@ -324,6 +324,46 @@ def test_fit_transfer_identity_copies_genforce(nodes_out):
     assert any(not np.array_equal(v, stiffer["genforce_comp"][k]) for k, v in stiffer["genforce"].items())
     assert bytes(stiffer["figures"]["compensation"][:8]) == PNG
     json.dumps(stiffer["attrs"])
+
+
+def test_transfer_seed_reproduces_transfer_and_mean_predictor(nodes_out, skins, tiny_config):
+    """transfer_seed at the transfer's own seed rebuilds its genforce_comp bit for bit (same
+    compensated labels from the stored curves, same schedule); another seed differs; the
+    MeanPredictor reads the mean of its members."""
+    _, same, stiffer = nodes_out
+    kw = dict(config={**tiny_config, "seq_len": 10}, steps=4, batch_size=2, lr=0.05,
+              train_indenters=["sphere", "prism", "cone"])
+    transfer = json.loads(json.dumps({"attrs": stiffer["attrs"]}))     # as a store hands it over
+    again = fit_transfer_seed(transfer=transfer, translated=skins["A"], seed=0, finetune_steps=0, **kw)
+    assert set(again["genforce_comp"]) == set(stiffer["genforce_comp"])
+    for k, v in stiffer["genforce_comp"].items():
+        np.testing.assert_array_equal(again["genforce_comp"][k], v)
+    assert again["attrs"]["seed"] == 0 and (again["attrs"]["source"], again["attrs"]["target"]) == ("B", "A")
+    # the identity pair (finetune stage included) too
+    again = fit_transfer_seed(transfer={"attrs": same["attrs"]}, translated=skins["B"], seed=0,
+                              finetune_steps=2, **kw)
+    for k, v in same["genforce_comp"].items():
+        np.testing.assert_array_equal(again["genforce_comp"][k], v)
+    other = fit_transfer_seed(transfer=transfer, translated=skins["A"], seed=1, finetune_steps=0, **kw)
+    assert any(not np.array_equal(v, other["genforce_comp"][k]) for k, v in stiffer["genforce_comp"].items())
+    json.dumps(other["attrs"])
+    members = [load_predictor(stiffer, prefix="genforce_comp"), load_predictor(other, prefix="genforce_comp")]
+    mean = MeanPredictor([load_predictor(stiffer, prefix="genforce_comp"),
+                          load_predictor(other, prefix="genforce_comp")])
+    for image in skins["A"]["images"][:5]:            # the GRU states carry on in every member
+        np.testing.assert_allclose(mean.step(image), (members[0].step(image) + members[1].step(image)) / 2,
+                                   rtol=1e-6, atol=1e-6)
+    mean.reset()
+    members[0].reset()
+    members[1].reset()
+    image = skins["A"]["images"][7]
+    np.testing.assert_allclose(mean.step(image), (members[0].step(image) + members[1].step(image)) / 2,
+                               rtol=1e-6, atol=1e-6)
+    with pytest.raises(ValueError, match="at least one predictor"):
+        MeanPredictor([])
+    with pytest.raises(ValueError, match=r"transfer\[B->A\] seed 1: no translated contacts"):
+        fit_transfer_seed(transfer=transfer, translated=skins["A"], seed=1, finetune_steps=0,
+                          **{**kw, "train_indenters": []})
 
 
 def test_fit_transfer_axes_mode_and_auto_ranges(skins, tiny_config):
