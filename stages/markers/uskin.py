@@ -28,7 +28,9 @@ circle in mm, drawn with the pad-to-pixel scale of each axis (as patterns.raster
 base_area = BASE_AREA = pi (0.2 * 22.6 / 4)^2 = 4.01 mm^2 reproduces the `uskin` reference
 pattern exactly.  Defaults s_xy 4000 counts per grid unit, s_z 150 counts per mm^2 and
 max_area 16 mm^2 take the twin's strongest shear to the 0.8 clip and its deepest press to
-about 14.5 mm^2 (dots about 4.3 mm across on a 6.15 x 5.65 mm pitch).
+about 14.5 mm^2 (dots about 4.3 mm across on a 6.15 x 5.65 mm pitch).  On the default profile
+(a finer solver grid) the cells move further, and its skins set s_xy 20000 (params.yaml: the
+dots then move about as far as GelSight's markers, under the clip).
 
 `parse_xela` reads the XELA server's WebSocket JSON, so captured hardware frames enter the
 same path.
