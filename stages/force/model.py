@@ -350,8 +350,6 @@ class StreamingPredictor:
         return self.model.denormalise(y[0]).numpy().astype(np.float32)
 
 
-# ---------------------------------------------------------------------------- serialisation
-
 class MeanPredictor:
     """Several streaming predictors on the same frames, read as one: the mean of their forces.
     Models trained from different seeds err differently at a contact they never saw; their
@@ -369,6 +367,8 @@ class MeanPredictor:
     def step(self, image) -> np.ndarray:
         return np.mean([p.step(image) for p in self.predictors], axis=0).astype(np.float32)
 
+
+# ---------------------------------------------------------------------------- serialisation
 
 def to_arrays(model: ForceRegressor) -> dict[str, np.ndarray]:
     """Every parameter and buffer as a numpy array, keyed by its state-dict name (scalars,
