@@ -1,0 +1,103 @@
+"""How a taxel skin's marker images carry shear, in its twin and in M2M's translations into it.
+
+    python scripts/shear_cue.py [--store artifacts] [--target uskin-z] [--source gelsight-A-II ...]
+
+For every frame with a contact, the centroid of the pixels the contact turned on (image minus
+reference) is taken relative to its contact's mean centroid, and correlated with the frame's
+shear force (x with Fx, y with Fy); the dots' mean motion (their centroids against the
+reference's, per 4x4 cell) is regressed on Fx.  On the 3-axis uSkin both follow the shear (the
+dots move with it).  On the z-only uSkin the dots cannot move and the growth centroid runs
+against the shear: a sheared pad sinks behind the contact and rises before it (Cerruti's
+solution, (1 - 2 nu) of the normal response), so the taxels behind it read more load.  A
+translation that draws the centroid with the shear, or moves z-only dots, teaches the
+transferred regressor a shear cue of the wrong sign.
+"""
+import argparse
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from pipeline.artifact import Artifact  # noqa: E402
+from stages.force.nodes import _read_runs, contact_runs  # noqa: E402
+
+
+def _corr(a, b) -> float:
+    return float(np.corrcoef(a, b)[0, 1]) if a.std() > 0 and b.std() > 0 else float("nan")
+
+
+def cue(art, max_contacts: int = 400) -> dict:
+    runs = contact_runs(art, None)[:max_contacts]
+    ref = np.asarray(art["reference"], float)
+    force = np.asarray(art["force"], float)
+    h, w = ref.shape
+    cell = (np.arange(h)[:, None] * 4 // h) * 4 + (np.arange(w)[None] * 4 // w)
+    yy, xx = np.mgrid[:h, :w]
+    masks = [cell == c for c in range(16)]
+
+    def dot_centres(im):
+        out = []
+        for m in masks:
+            v = im * m
+            s = v.sum() + 1e-9
+            out.append(((v * xx).sum() / s, (v * yy).sum() / s))
+        return np.array(out)
+
+    ref_c = dot_centres(ref)
+    cx, cy, fs, move, fmove = [], [], [], [], []
+    for (a, b), imgs in zip(runs, _read_runs(art, "images", runs)):
+        im = np.asarray(imgs, float)
+        d = np.clip(im - ref, 0, None)
+        mass = d.sum((1, 2))
+        on = mass > 50 * 255
+        if on.sum() < 3:
+            continue
+        x = (d * xx).sum((1, 2))[on] / mass[on]
+        y = (d * yy).sum((1, 2))[on] / mass[on]
+        cx.append(x - x.mean())
+        cy.append(y - y.mean())
+        fs.append(force[a:b][on])
+        for i in range(0, len(im), 3):
+            move.append((dot_centres(im[i]) - ref_c)[:, 0].mean())
+            fmove.append(force[a + i, 0])
+    cx, cy, fs = map(np.concatenate, (cx, cy, fs))
+    move, fmove = np.array(move), np.array(fmove)
+    return {"frames": len(cx),
+            "corr_x": _corr(cx, fs[:, 0]),
+            "corr_y": _corr(cy, fs[:, 1]),
+            "dot_move_px_per_N": float(np.polyfit(fmove, move, 1)[0]),
+            "dot_move_std_px": float(move.std())}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--store", default="artifacts")
+    ap.add_argument("--target", default="uskin-z")
+    ap.add_argument("--source", nargs="*", default=["gelsight-A-II"])
+    args = ap.parse_args(argv)
+    store = Path(args.store).resolve()
+
+    def get(name):
+        out = subprocess.run([sys.executable, "-m", "pipeline", "get", name, "--store", str(store)],
+                             capture_output=True, text=True, cwd=REPO)
+        if out.returncode:
+            raise SystemExit(f"shear_cue: {out.stderr.strip() or out.stdout.strip()}")
+        return Artifact(out.stdout.strip())
+
+    rows = [(f"{args.target} twin", get(f"markers[skin={args.target}]"))]
+    rows += [(f"{s} -> {args.target} (M2M)", get(f"translate[source={s},target={args.target}]"))
+             for s in args.source]
+    print(f"{'images':40s} {'frames':>6s} {'corr(cx,Fx)':>11s} {'corr(cy,Fy)':>11s} "
+          f"{'dot move px/N':>13s} {'move std px':>11s}")
+    for name, art in rows:
+        c = cue(art)
+        print(f"{name:40s} {c['frames']:6d} {c['corr_x']:11.3f} {c['corr_y']:11.3f} "
+              f"{c['dot_move_px_per_N']:13.3f} {c['dot_move_std_px']:11.3f}")
+
+
+if __name__ == "__main__":
+    main()
