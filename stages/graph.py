@@ -101,7 +101,8 @@ GRAPH.node("m2m", "stages.m2m.nodes:finetune",
                    "batch_size": "m2m.finetune.batch_size", "lr": "m2m.finetune.lr",
                    "seed": "m2m.finetune.seed", "change_weight": "m2m.finetune.change_weight",
                    "change_share": "m2m.finetune.change_share",
-                   "target_balance": "m2m.finetune.target_balance"},
+                   "target_balance": "m2m.finetune.target_balance",
+                   "change_per_example": "m2m.finetune.change_per_example"},
            description="M2M fine-tuned to the twin sensors with a few location-paired frames each")
 _EVAL = {"eval_indenters": "splits.test_indenters", "n_eval": "m2m.n_eval"}
 GRAPH.node("translate_sim", "stages.m2m.nodes:translate_sequence",

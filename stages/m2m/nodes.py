@@ -81,7 +81,7 @@ def _distinct_references(skins: Sequence[str], refs: np.ndarray, title: str) -> 
 
 
 def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_size, lr, seed,
-           change_weight, change_share, title, target_balance=0.0):
+           change_weight, change_share, title, target_balance=0.0, change_per_example=0.0):
     from stages.m2m.model import Translator, state_arrays
     from stages.m2m.train import PairBatches, fit, target_probabilities
     frames, rows = paired_table(markers, skins, train_indenters, per_skin)
@@ -95,6 +95,7 @@ def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_
         hist = fit(net, config, batches, steps=int(steps),
                    batch_size=int(batch_size), lr=float(lr), seed=int(seed),
                    change_weight=float(change_weight), change_share=float(change_share),
+                   change_per_example=float(change_per_example),
                    progress=title)
         weights = state_arrays(net)
         samples = _samples_sheet(Translator(config, weights), images, refs, seed)
@@ -133,7 +134,8 @@ def pretrain(*, markers: Mapping, skins: list[str], train_indenters: list[str], 
 
 def finetune(*, base, markers: Mapping, skins: list[str], train_indenters: list[str],
              pairs_per_skin: int, steps: int, batch_size: int, lr: float, seed: int,
-             change_weight: float = 0.0, change_share: float = 0.0, target_balance: float = 0.0) -> dict:
+             change_weight: float = 0.0, change_share: float = 0.0, target_balance: float = 0.0,
+             change_per_example: float = 0.0) -> dict:
     """Node m2m: `base` (a pretrained model) fine-tuned on `pairs_per_skin` location-paired
     frames shared by `skins`, evenly spread over the training indenters' frames.  Targets are
     drawn by train.target_probabilities over the skins' looks (the markers' `look` attribute)
@@ -142,7 +144,8 @@ def finetune(*, base, markers: Mapping, skins: list[str], train_indenters: list[
     config = attrs_of(base)["config"]
     net = build(config, weights_of(base))
     out = _train(net, config, markers, skins, train_indenters, int(pairs_per_skin), steps, batch_size,
-                 lr, seed, change_weight, change_share, "m2m finetune", target_balance)
+                 lr, seed, change_weight, change_share, "m2m finetune", target_balance,
+                 change_per_example)
     out["attrs"]["base_skins"] = list(attrs_of(base).get("skins", []))
     out["attrs"]["pairs_per_skin"] = int(pairs_per_skin)
     return out

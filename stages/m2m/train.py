@@ -18,9 +18,12 @@ for the paper's thin dots).  The fine-tune weighs the BCE of the pixels a deform
 it is the change that carries the force (for uSkin the growth of 16 dots).  The share rule
 sets the weight per target skin from the mean share of its pixels the deformation changes,
 since a contact changes ~1% of a GelSight image and ~12% of a 3-axis uSkin one: one fixed
-weight that lifts the first draws the second's dots too large.  It is per skin, not per
-example: weighing each example to the same share would make a frame's large contact (the
-change that carries a large force) weigh as little as a light touch's few pixels.
+weight that lifts the first draws the second's dots too large.  The changed share c in the
+rule is the geometric blend skin^(1-a) * own^a of the skin's mean and the example's own
+(a = change_per_example).  a = 0 weighs every example of a skin alike, and a light touch's
+few changed pixels then weigh little: M2M drew light-touch marker motion at a tenth of its
+size.  a = 1 gives every example's change the same share, so a large contact (the change that
+carries a large force) weighs as little as a light touch's few pixels.
 No adversarial term: outputs are thresholded to binary images, so the blur a GAN fights
 does not reach the artifacts.
 """
@@ -113,19 +116,24 @@ class PairBatches:
 
 def loss_fn(logits: torch.Tensor, target: torch.Tensor, reference: torch.Tensor | None = None,
             change_weight: float = 0.0, change_share: float = 0.0,
-            changed_fraction: torch.Tensor | None = None) -> torch.Tensor:
+            changed_fraction: torch.Tensor | None = None,
+            change_per_example: float = 0.0) -> torch.Tensor:
     """BCE on logits + DICE_WEIGHT * (1 - soft Dice) of the marker probability.
 
     With a target `reference` (binary, like target), the BCE of every pixel the deformation
     changed (target != reference) weighs w = max(1 + change_weight, s/(1-s) * (1-c)/c) with
     s = change_share and c the changed share of the pixels: `changed_fraction` (B,) when given
-    (PairBatches passes the target skin's mean), else each example's own.  At its mean the
+    (PairBatches passes the target skin's mean) blended with each example's own share as
+    changed_fraction^(1-a) * own^a, a = change_per_example in [0, 1]; without
+    `changed_fraction`, each example's own.  At its mean the
     skin's changed pixels then carry the share s of the BCE: a skin whose contacts change 1% of
     the image gets w ~ 9 at s = 0.1, one whose taxel dots change 12% of it gets w = 1, so each
     is pushed off a copy of its reference about as hard.  Each example's BCE is the w-weighted
     mean of its pixels; the batch's is the mean of those."""
     if not 0 <= change_share < 1:
         raise ValueError(f"change_share must be in [0, 1), got {change_share}")
+    if not 0 <= change_per_example <= 1:
+        raise ValueError(f"change_per_example must be in [0, 1], got {change_per_example}")
     if reference is None or (change_weight <= 0 and change_share == 0):
         bce = F.binary_cross_entropy_with_logits(logits, target)
     else:
@@ -134,7 +142,10 @@ def loss_fn(logits: torch.Tensor, target: torch.Tensor, reference: torch.Tensor 
         if changed_fraction is None:
             frac = changed.sum((1, 2, 3), keepdim=True) / n
         else:
-            frac = changed_fraction.to(changed).reshape(-1, 1, 1, 1)
+            frac = changed_fraction.to(changed).reshape(-1, 1, 1, 1).clamp(min=1.0 / n)
+            if change_per_example > 0:
+                own = (changed.sum((1, 2, 3), keepdim=True) / n).clamp(min=1.0 / n)
+                frac = frac ** (1.0 - change_per_example) * own ** change_per_example
         frac = frac.clamp(min=1.0 / n)
         share = change_share / (1 - change_share) * (1 - frac) / frac
         w = 1.0 + (share.clamp(min=1.0 + change_weight) - 1.0) * changed
@@ -163,7 +174,7 @@ def noisy_input(target: torch.Tensor, config, gen: torch.Generator) -> tuple[tor
 
 def fit(net: M2MNet, config, batches: Callable, *, steps: int, batch_size: int, lr: float,
         seed: int, change_weight: float = 0.0, change_share: float = 0.0,
-        progress: str = "m2m") -> dict:
+        progress: str = "m2m", change_per_example: float = 0.0) -> dict:
     """AdamW with warm-up and cosine decay; `batches(b)` gives (condition, target, the target
     skin's changed fraction) as PairBatches does; change_weight/share as in loss_fn (the target
     reference is the condition's third channel).  Returns {"loss": (steps,) float32, "seconds",
@@ -185,7 +196,7 @@ def fit(net: M2MNet, config, batches: Callable, *, steps: int, batch_size: int, 
         x_t, t = noisy_input(target, config, gen)
         cond, target, x_t, t = cond.to(dev), target.to(dev), x_t.to(dev), t.to(dev)
         loss = loss_fn(net(x_t, cond, t), target, (cond[:, 2:3] > 0).float(), float(change_weight),
-                       float(change_share), frac)
+                       float(change_share), frac, float(change_per_example))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

@@ -221,3 +221,34 @@ def test_pair_batches_draw_targets_by_target_p_and_never_the_source():
     assert (target != source).all()
     with pytest.raises(ValueError, match="target_p must be 4 probabilities"):
         PairBatches(images, refs, seed=0, target_p=[0.5, 0.5, 0.5, 0.5])
+
+
+def test_change_per_example_blends_the_skin_share_with_the_examples_own():
+    """With the skin's mean changed share 18/128 and the examples' own 2/64 and 16/64, a = 0.5
+    weighs each example's changed pixels by the share rule at sqrt(skin * own): the light
+    touch's 2 pixels get w = 0.25 * (1 - c)/c at c = sqrt(18/128 * 2/64) (~ 3.6) instead of
+    the skin's ~ 1.5, the large contact's 16 get ~ 1.1; a = 0 and a = 1 are the per-skin and
+    per-example rules."""
+    from torch.nn import functional as F
+    ref = torch.zeros(2, 1, 8, 8)
+    ref[..., 2:4, 2:4] = 1.0
+    t = ref.clone()
+    t[0, 0, 2:4, 4] = 1.0                                   # 2 changed pixels
+    t[1, 0, 4:6, 0:8] = 1.0                                 # 16 changed pixels
+    copy = (2 * ref - 1) * 30
+    wrong = float(F.binary_cross_entropy_with_logits(copy[0, 0, 2, 4], t[0, 0, 2, 4]))
+    dice = 1 - ((2 * 4 + 1) / (4 + 6 + 1) + (2 * 4 + 1) / (4 + 20 + 1)) / 2
+    skin = torch.full((2,), 18 / 128)
+
+    def expect(c_light, c_heavy):
+        w = [max(1.0, 0.25 * (1 - c) / c) for c in (c_light, c_heavy)]
+        return (w[0] * 2 * wrong / (62 + 2 * w[0]) + w[1] * 16 * wrong / (48 + 16 * w[1])) / 2 + dice
+
+    def got(a):
+        return float(loss_fn(copy, t, ref, change_share=0.2, changed_fraction=skin, change_per_example=a))
+
+    assert got(0.5) == pytest.approx(expect(np.sqrt(18 / 128 * 2 / 64), np.sqrt(18 / 128 * 16 / 64)), rel=1e-4)
+    assert got(0.0) == pytest.approx(expect(18 / 128, 18 / 128), rel=1e-4)
+    assert got(1.0) == pytest.approx(float(loss_fn(copy, t, ref, change_share=0.2)), rel=1e-6)
+    with pytest.raises(ValueError, match=r"change_per_example must be in \[0, 1\], got 1.5"):
+        got(1.5)
