@@ -8,8 +8,9 @@ Rows per generator width: training steps/s (batch 16, one optimiser step each, t
 --change-share / --change-per-example and data pipeline of stages.m2m.train included),
 translated images/s with the one-step generator and with the 4-step sampler (batch 64,
 stages.m2m.model.Translator, uint8 in and out); then flow-warp images/s (stages.m2m.flow on
-synthetic deformed marker images) and InceptionV3 feature images/s (stages.imagemetrics, batch 32).  Wall time and, in brackets,
-CPU time of the process: on a shared machine the CPU column is the one to compare.
+synthetic deformed marker images) and InceptionV3 feature images/s (stages.imagemetrics,
+batch 32).  Wall time and, in brackets, CPU time of the process: on a shared machine the CPU
+column is the one to compare.
 """
 import argparse
 import os
