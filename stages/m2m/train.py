@@ -176,8 +176,8 @@ def fit(net: M2MNet, config, batches: Callable, *, steps: int, batch_size: int, 
         seed: int, change_weight: float = 0.0, change_share: float = 0.0,
         progress: str = "m2m", change_per_example: float = 0.0) -> dict:
     """AdamW with warm-up and cosine decay; `batches(b)` gives (condition, target, the target
-    skin's changed fraction) as PairBatches does; change_weight/share as in loss_fn (the target
-    reference is the condition's third channel).  Returns {"loss": (steps,) float32, "seconds",
+    skin's changed fraction) as PairBatches does; change_weight, change_share and
+    change_per_example as in loss_fn (the target reference is the condition's third channel).  Returns {"loss": (steps,) float32, "seconds",
     "steps_per_s"}."""
     from tqdm import tqdm
     torch.manual_seed(seed)
