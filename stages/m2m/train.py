@@ -139,14 +139,12 @@ def loss_fn(logits: torch.Tensor, target: torch.Tensor, reference: torch.Tensor 
     else:
         changed = (target - reference).abs()
         n = changed[0].numel()
+        own = (changed.sum((1, 2, 3), keepdim=True) / n).clamp(min=1.0 / n)
         if changed_fraction is None:
-            frac = changed.sum((1, 2, 3), keepdim=True) / n
+            frac = own
         else:
-            frac = changed_fraction.to(changed).reshape(-1, 1, 1, 1).clamp(min=1.0 / n)
-            if change_per_example > 0:
-                own = (changed.sum((1, 2, 3), keepdim=True) / n).clamp(min=1.0 / n)
-                frac = frac ** (1.0 - change_per_example) * own ** change_per_example
-        frac = frac.clamp(min=1.0 / n)
+            skin = changed_fraction.to(changed).reshape(-1, 1, 1, 1).clamp(min=1.0 / n)
+            frac = skin ** (1.0 - change_per_example) * own ** change_per_example
         share = change_share / (1 - change_share) * (1 - frac) / frac
         w = 1.0 + (share.clamp(min=1.0 + change_weight) - 1.0) * changed
         per_pixel = F.binary_cross_entropy_with_logits(logits, target, reduction="none")
@@ -177,8 +175,8 @@ def fit(net: M2MNet, config, batches: Callable, *, steps: int, batch_size: int, 
         progress: str = "m2m", change_per_example: float = 0.0) -> dict:
     """AdamW with warm-up and cosine decay; `batches(b)` gives (condition, target, the target
     skin's changed fraction) as PairBatches does; change_weight, change_share and
-    change_per_example as in loss_fn (the target reference is the condition's third channel).  Returns {"loss": (steps,) float32, "seconds",
-    "steps_per_s"}."""
+    change_per_example as in loss_fn (the target reference is the condition's third channel).
+    Returns {"loss": (steps,) float32, "seconds", "steps_per_s"}."""
     from tqdm import tqdm
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
