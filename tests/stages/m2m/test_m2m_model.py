@@ -120,10 +120,10 @@ def test_change_weight_weighs_the_pixels_the_deformation_changed():
     assert float(loss_fn(copy, ref, ref, change_weight=10.0)) == pytest.approx(float(loss_fn(copy, ref)), rel=1e-6)
 
 
-def test_change_share_gives_the_changed_pixels_their_share_per_example():
-    """Two examples, 2 and 16 of 64 pixels changed, a confident copy of the reference: at
-    share s = 0.2 the first's changed pixels weigh 0.25 * 62/2 = 7.75 (BCE share 0.2), the
-    second's would weigh 0.25 * 48/16 < 1 and stay at 1; the example BCEs are averaged."""
+def light_and_heavy():
+    """Two 8x8 examples on a 2x2-marker reference, 2 and 16 of 64 pixels changed, and a
+    confident copy of the reference as the prediction: (reference, target, copy logits, the
+    BCE of one wrong pixel, the soft-Dice term of the copy)."""
     from torch.nn import functional as F
     ref = torch.zeros(2, 1, 8, 8)
     ref[..., 2:4, 2:4] = 1.0
@@ -133,6 +133,14 @@ def test_change_share_gives_the_changed_pixels_their_share_per_example():
     copy = (2 * ref - 1) * 30
     wrong = float(F.binary_cross_entropy_with_logits(copy[0, 0, 2, 4], target[0, 0, 2, 4]))
     dice = 1 - ((2 * 4 + 1) / (4 + 6 + 1) + (2 * 4 + 1) / (4 + 20 + 1)) / 2
+    return ref, target, copy, wrong, dice
+
+
+def test_change_share_gives_the_changed_pixels_their_share_per_example():
+    """Two examples, 2 and 16 of 64 pixels changed, a confident copy of the reference: at
+    share s = 0.2 the first's changed pixels weigh 0.25 * 62/2 = 7.75 (BCE share 0.2), the
+    second's would weigh 0.25 * 48/16 < 1 and stay at 1; the example BCEs are averaged."""
+    ref, target, copy, wrong, dice = light_and_heavy()
     first = 7.75 * 2 * wrong / (62 + 7.75 * 2)
     second = 16 * wrong / 64
     got = float(loss_fn(copy, target, ref, change_share=0.2))
@@ -229,15 +237,7 @@ def test_change_per_example_blends_the_skin_share_with_the_examples_own():
     touch's 2 pixels get w = 0.25 * (1 - c)/c at c = sqrt(18/128 * 2/64) (~ 3.6) instead of
     the skin's ~ 1.5, the large contact's 16 get ~ 1.1; a = 0 and a = 1 are the per-skin and
     per-example rules."""
-    from torch.nn import functional as F
-    ref = torch.zeros(2, 1, 8, 8)
-    ref[..., 2:4, 2:4] = 1.0
-    t = ref.clone()
-    t[0, 0, 2:4, 4] = 1.0                                   # 2 changed pixels
-    t[1, 0, 4:6, 0:8] = 1.0                                 # 16 changed pixels
-    copy = (2 * ref - 1) * 30
-    wrong = float(F.binary_cross_entropy_with_logits(copy[0, 0, 2, 4], t[0, 0, 2, 4]))
-    dice = 1 - ((2 * 4 + 1) / (4 + 6 + 1) + (2 * 4 + 1) / (4 + 20 + 1)) / 2
+    ref, t, copy, wrong, dice = light_and_heavy()
     skin = torch.full((2,), 18 / 128)
 
     def expect(c_light, c_heavy):
