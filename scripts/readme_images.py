@@ -7,7 +7,6 @@ Run it after `make run` (the default profile) and `pipeline report`; the screens
 Chromium (`scripts/setup.sh --test` installs it) and is skipped without it.
 """
 import argparse
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -15,6 +14,9 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tests" / "pipeline"))
+sys.path.insert(0, str(REPO / "scripts"))
+
+from store_lookup import artifact_path  # noqa: E402
 
 # README picture -> (node instance, figure)
 FIGURES = {
@@ -29,14 +31,6 @@ FIGURES = {
 }
 
 
-def artifact_path(store: str, instance: str) -> str:
-    out = subprocess.run([sys.executable, "-m", "pipeline", "get", instance, "--store", store],
-                         cwd=REPO, capture_output=True, text=True)
-    if out.returncode:
-        sys.exit(f"readme_images: {instance}: {out.stderr.strip() or out.stdout.strip()}")
-    return out.stdout.strip()
-
-
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--store", default="artifacts")
@@ -48,7 +42,7 @@ def main():
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     for name, (instance, figure) in FIGURES.items():
-        art = Artifact(artifact_path(args.store, instance))
+        art = Artifact(artifact_path(args.store, instance, "readme_images"))
         key = f"figures/{figure}"
         if key not in art:
             sys.exit(f"readme_images: {instance} has no {key}")

@@ -13,7 +13,6 @@ translation that draws the centroid with the shear, or moves z-only dots, teache
 transferred regressor a shear cue of the wrong sign.
 """
 import argparse
-import subprocess
 import sys
 from pathlib import Path
 
@@ -21,9 +20,11 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "scripts"))
 
 from pipeline.artifact import Artifact  # noqa: E402
-from stages.force.nodes import _read_runs, contact_runs  # noqa: E402
+from stages.force.nodes import contact_runs  # noqa: E402
+from store_lookup import artifact_path  # noqa: E402
 
 
 def _corr(a, b) -> float:
@@ -49,8 +50,8 @@ def cue(art, max_contacts: int = 400) -> dict:
 
     ref_c = dot_centres(ref)
     cx, cy, fs, move, fmove = [], [], [], [], []
-    for (a, b), imgs in zip(runs, _read_runs(art, "images", runs)):
-        im = np.asarray(imgs, float)
+    for a, b in runs:
+        im = np.asarray(art["images"][a:b], float)
         d = np.clip(im - ref, 0, None)
         mass = d.sum((1, 2))
         on = mass > 50 * 255
@@ -82,11 +83,7 @@ def main(argv=None):
     store = Path(args.store).resolve()
 
     def get(name):
-        out = subprocess.run([sys.executable, "-m", "pipeline", "get", name, "--store", str(store)],
-                             capture_output=True, text=True, cwd=REPO)
-        if out.returncode:
-            raise SystemExit(f"shear_cue: {out.stderr.strip() or out.stdout.strip()}")
-        return Artifact(out.stdout.strip())
+        return Artifact(artifact_path(store, name, "shear_cue"))
 
     rows = [(f"{args.target} twin", get(f"markers[skin={args.target}]"))]
     rows += [(f"{s} -> {args.target} (M2M)", get(f"translate[source={s},target={args.target}]"))

@@ -1,0 +1,17 @@
+"""A node instance's artifact file in a store, for the scripts: through `pipeline get`, so the
+store's index and this checkout's params and code decide, as on the command line."""
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def artifact_path(store: str, instance: str, tool: str) -> str:
+    """The path `pipeline get` prints; exits with one line naming `tool` and `instance` when
+    the store does not hold it up to date."""
+    out = subprocess.run([sys.executable, "-m", "pipeline", "get", instance, "--store", str(store)],
+                         cwd=REPO, capture_output=True, text=True)
+    if out.returncode:
+        sys.exit(f"{tool}: {instance}: {out.stderr.strip() or out.stdout.strip()}")
+    return out.stdout.strip()
