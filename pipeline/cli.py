@@ -75,6 +75,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--json", action="store_true")
     m.add_argument("--baseline", type=Path, help="exit 1 on a regression against this file")
     m.add_argument("--save-baseline", type=Path, help="write current metrics as the baseline")
+    m.add_argument("--merge-baseline", type=Path,
+                   help="rewrite this baseline keeping, per metric, the worse of its value and the "
+                        "current one (a baseline that holds on every machine it was merged on)")
     rp = sub.add_parser("report", help="write the HTML report")
     _common(rp)
     rp.add_argument("--out", type=Path, default=None, help="output folder (default: report/)")
@@ -293,6 +296,10 @@ def cmd_metrics(ctx: Context) -> int:
     if ctx.args.save_baseline:
         M.save_baseline(ctx.args.save_baseline, current)
         print(f"wrote {len(current)} metrics to {ctx.args.save_baseline}", file=sys.stderr)
+    if ctx.args.merge_baseline:
+        merged = M.merged_worse(M.load_baseline(ctx.args.merge_baseline)["metrics"], current)
+        M.save_baseline(ctx.args.merge_baseline, merged)
+        print(f"merged {len(current)} metrics into {ctx.args.merge_baseline}", file=sys.stderr)
     if ctx.args.json:
         _print_json(current)
     elif not ctx.args.baseline:

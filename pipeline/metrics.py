@@ -84,6 +84,21 @@ def compare(current: dict[str, float], baseline: dict) -> list[dict]:
     return rows
 
 
+def merged_worse(baseline: dict[str, float], current: dict[str, float]) -> dict[str, float]:
+    """Per metric the worse of the baseline's value and the current one (in the metric's
+    direction); metrics in only one of the two are kept as they are.  A baseline merged this
+    way on every machine type CI may run on holds on each of them: torch's CPU kernels differ
+    across CPU types, and a short training amplifies the difference."""
+    out = dict(baseline)
+    for name, cur in current.items():
+        base = out.get(name)
+        if not _number(base) or not _number(cur) or math.isnan(cur):
+            out.setdefault(name, cur)
+            continue
+        out[name] = min(base, cur) if higher_is_better(name) else max(base, cur)
+    return dict(sorted(out.items()))
+
+
 def save_baseline(path: Path, current: dict[str, float]) -> None:
     """Write current metrics as the baseline.  An existing file keeps everything above its
     `metrics:` section verbatim (the tolerances and the comments that justify them)."""

@@ -116,13 +116,13 @@ _TRANSFER_PAIRS = ("homo.groups.pairs + material.groups.hard_to_soft + material.
 GRAPH.node("translate", "stages.m2m.nodes:translate_sequence",
            inputs={"model": "m2m", "source_markers": "markers[skin={source}]",
                    "target_markers": "markers[skin={target}]"},
-           params={**_EVAL, "sampler_steps": "m2m.sampler_steps"},
+           params={**_EVAL, "sampler_steps": "m2m.sampler_steps", "redraw_taxels": "m2m.redraw_taxels"},
            grid={"source,target": _TRANSFER_PAIRS},
            description="a calibrated sensor's sequence in an uncalibrated sensor's style")
 GRAPH.node("flow_warp", "stages.m2m.nodes:flow_warp_sequence",
            inputs={"source_markers": "markers[skin={source}]",
                    "target_markers": "markers[skin={target}]"},
-           params=_EVAL,
+           params={**_EVAL, "redraw_taxels": "m2m.redraw_taxels"},
            grid={"source,target": "sim_m2m.pairs + " + _TRANSFER_PAIRS},
            description="training-free baseline: the source's marker motion warps the target's reference")
 GRAPH.node("features", "stages.m2m.nodes:image_features",

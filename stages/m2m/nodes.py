@@ -205,35 +205,55 @@ def _stream(source, target, eval_indenters, n_eval, convert, method: str):
     return result
 
 
+def _in_target_space(convert, target_markers, target: str, redraw_taxels: Sequence[str]):
+    """`convert`, followed for a target skin named in `redraw_taxels` by uskin.redraw: the
+    output read as the taxel skin's 16 dots and drawn again as the skin draws them.  Returns
+    (convert, whether it redraws)."""
+    if target not in set(redraw_taxels or ()):
+        return convert, False
+    attrs = attrs_of(target_markers)
+    if attrs.get("look") != "taxel":
+        raise ValueError(f"m2m.redraw_taxels names {target!r}, whose markers are not taxel dots "
+                         f"(look {attrs.get('look')!r})")
+    from stages.markers.uskin import redraw
+    settings = attrs.get("settings", {})
+    return (lambda images: redraw(convert(images), settings)), True
+
+
 def translate_sequence(*, model, source_markers, target_markers, eval_indenters: list[str], n_eval: int,
-                       sampler_steps: int = 1, source: str = "", target: str = ""):
+                       sampler_steps: int = 1, redraw_taxels: Sequence[str] = (), source: str = "",
+                       target: str = ""):
     """Nodes translate_sim[source,target] / translate[source,target]: the source sequence
     (source_markers, a marker artifact) translated into the target's marker style by the M2M
     model (chunks: images + the source labels); returns the target's reference, `features`
-    and `eval_frames` of the evaluation frames, figures/examples and attrs.  source, target:
-    the skins' names (the fan-out's values)."""
+    and `eval_frames` of the evaluation frames, figures/examples and attrs.  redraw_taxels:
+    the taxel skins whose translations are redrawn as their dots (_in_target_space; attrs
+    redraw_taxels true where done).  source, target: the skins' names (the fan-out's values)."""
     from stages.m2m.model import load_translator
     translator = load_translator(model)
     src_ref = np.asarray(source_markers["reference"], np.uint8)
     tgt_ref = np.asarray(target_markers["reference"], np.uint8)
+    convert, redrawn = _in_target_space(
+        lambda im: translator.translate(im, src_ref, tgt_ref, int(sampler_steps)), target_markers, target,
+        redraw_taxels)
     with torch_threads():
-        result = yield from _stream(source_markers, target_markers, eval_indenters, n_eval,
-                                    lambda im: translator.translate(im, src_ref, tgt_ref, int(sampler_steps)),
-                                    "m2m")
-    result["attrs"].update(sampler_steps=int(sampler_steps), source=source, target=target)
+        result = yield from _stream(source_markers, target_markers, eval_indenters, n_eval, convert, "m2m")
+    result["attrs"].update(sampler_steps=int(sampler_steps), **({"redraw_taxels": True} if redrawn else {}),
+                           source=source, target=target)
     return result
 
 
 def flow_warp_sequence(*, source_markers, target_markers, eval_indenters: list[str], n_eval: int,
-                       source: str = "", target: str = ""):
+                       redraw_taxels: Sequence[str] = (), source: str = "", target: str = ""):
     """Node flow_warp[source,target]: the training-free baseline (stages.m2m.flow) with the
-    same outputs as translate_sequence."""
+    same outputs as translate_sequence (redraw_taxels as there)."""
     from stages.m2m.flow import MarkerFlow, warp
     flow = MarkerFlow(np.asarray(source_markers["reference"], np.uint8))
     tgt_ref = np.asarray(target_markers["reference"], np.uint8)
-    result = yield from _stream(source_markers, target_markers, eval_indenters, n_eval,
-                                lambda ims: np.stack([warp(tgt_ref, flow.field(im)) for im in ims]), "flow_warp")
-    result["attrs"].update(source=source, target=target)
+    convert, redrawn = _in_target_space(lambda ims: np.stack([warp(tgt_ref, flow.field(im)) for im in ims]),
+                                        target_markers, target, redraw_taxels)
+    result = yield from _stream(source_markers, target_markers, eval_indenters, n_eval, convert, "flow_warp")
+    result["attrs"].update(**({"redraw_taxels": True} if redrawn else {}), source=source, target=target)
     return result
 
 

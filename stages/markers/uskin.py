@@ -32,6 +32,10 @@ about 14.5 mm^2 (dots about 4.3 mm across on a 6.15 x 5.65 mm pitch).  On the de
 (a finer solver grid) the cells move further, and its skins set s_xy 20000 (params.yaml: the
 dots then move about as far as GelSight's markers, under the clip).
 
+`read_dots` inverts the drawing (every white pixel to its nearest dot: centres and areas) and
+`redraw` draws an image's dots again as a skin draws them, so that a translation into a taxel
+skin becomes an image the skin can show (m2m.redraw_taxels).
+
 `parse_xela` reads the XELA server's WebSocket JSON, so captured hardware frames enter the
 same path.
 """
@@ -157,13 +161,81 @@ def signal_to_marker(raw, baseline, *, size=(128, 128), pad_mm=USKIN_PAD_MM, s_x
     pad = tuple(float(v) for v in pad_mm)
     centres, area = _dots(data, baseline, pad_mm=pad, s_xy=s_xy, s_z=s_z, base_area=base_area,
                           max_area=max_area, max_offset=max_offset, z_only=z_only)
+    out = _draw(centres, area, size=size, pad_mm=pad, supersample=supersample)
+    return out[0] if single else out
+
+
+def _draw(centres, area, *, size, pad_mm, supersample: int = 4) -> np.ndarray:
+    """(N, H, W) uint8 0/255 images of round dots at centres (N, 16, 2) mm with areas (N, 16) mm^2."""
     h, w = (int(v) for v in size)
-    out = np.empty((len(data), h, w), np.uint8)
+    out = np.empty((len(centres), h, w), np.uint8)
     for i, (c, a) in enumerate(zip(centres, area)):
         r = np.sqrt(a / np.pi)[:, None]
-        out[i] = rasterize(MarkerSet(c, np.hstack([r, r]), 0.0, pad), size=(h, w),
+        out[i] = rasterize(MarkerSet(c, np.hstack([r, r]), 0.0, tuple(pad_mm)), size=(h, w),
                            supersample=supersample)
-    return out[0] if single else out
+    return out
+
+
+def read_dots(images, *, pad_mm=USKIN_PAD_MM, iterations: int = 3):
+    """The dots of taxel marker images (N, H, W) 0/255: centres (N, 16, 2) mm and areas (N, 16)
+    mm^2, the inverse of signal_to_marker's drawing for any image (a translation into a taxel
+    skin, say).  Every white pixel belongs to the dot whose centre is nearest; centres start at
+    the taxel centres and move to their pixels' centroid, `iterations` times, so a dot drawn
+    off its taxel keeps its pixels even where they cross into the next taxel's cell.  A dot's
+    area is its pixel count times a pixel's area; a dot without pixels keeps its centre, area 0."""
+    ims = np.asarray(images)
+    if ims.ndim != 3:
+        raise ValueError(f"read_dots: images must be (N,H,W), got {ims.shape}")
+    n, h, w = ims.shape
+    pw, ph = (float(v) for v in pad_mm)
+    xs = (np.arange(w) + 0.5) * pw / w - pw / 2
+    ys = (np.arange(h) + 0.5) * ph / h - ph / 2
+    grid = taxel_centres((pw, ph))
+    centres = np.repeat(grid[None], n, 0)
+    areas = np.zeros((n, len(grid)))
+    for i, im in enumerate(ims):
+        yi, xi = np.nonzero(im > 127)
+        if not len(xi):
+            continue
+        p = np.stack([xs[xi], ys[yi]], 1)
+        c = grid.copy()
+        for _ in range(max(1, int(iterations))):
+            owner = np.argmin(((p[:, None] - c[None]) ** 2).sum(-1), 1)
+            count = np.bincount(owner, minlength=len(c))
+            has = count > 0
+            for k in (0, 1):
+                c[has, k] = np.bincount(owner, p[:, k], len(c))[has] / count[has]
+        centres[i], areas[i] = c, count * (pw / w) * (ph / h)
+    return centres, areas
+
+
+def redraw(images, settings: Mapping, supersample: int = 4) -> np.ndarray:
+    """Images (N, H, W) 0/255 read as a taxel skin's dots (read_dots) and drawn again as
+    signal_to_marker draws that skin.  settings: the skin's signal_to_marker keywords (a taxel
+    markers artifact's attrs["settings"]); pad_mm, base_area, max_area, max_offset and z_only
+    are used (defaults as signal_to_marker's), s_xy and s_z scale signals and do not matter here.
+    Areas are clipped to base_area..max_area, offsets to max_offset grid units, and a z-only
+    skin's dots stay at their taxel centres.  An image of the skin redraws as itself up to the
+    dots' rasterised edges; a translation into the skin becomes an image the skin can show
+    (z-only dots cannot move)."""
+    ims = np.asarray(images)
+    if ims.ndim != 3:
+        raise ValueError(f"redraw: images must be (N,H,W), got {ims.shape}")
+    pad = tuple(float(v) for v in settings.get("pad_mm", USKIN_PAD_MM))
+    size = tuple(int(v) for v in settings.get("size", ims.shape[1:]))
+    if size != ims.shape[1:]:
+        raise ValueError(f"redraw: images are {ims.shape[1:]}, the skin draws {size}")
+    base_area = float(settings.get("base_area", BASE_AREA))
+    max_area = float(settings.get("max_area", 16.0))
+    max_offset = float(settings.get("max_offset", 0.8))
+    z_only = bool(settings.get("z_only", False))
+    centres, areas = read_dots(ims, pad_mm=pad)
+    pitch = np.array([pad[0] / TAXELS[1], pad[1] / TAXELS[0]])
+    grid = taxel_centres(pad)
+    limit = 0.0 if z_only else max_offset
+    centres = grid + np.clip(centres - grid, -limit * pitch, limit * pitch)
+    return _draw(centres, np.clip(areas, base_area, max_area), size=ims.shape[1:], pad_mm=pad,
+                 supersample=supersample)
 
 
 def _values(sensor, data) -> np.ndarray:

@@ -62,6 +62,14 @@ def test_metrics_and_baseline(toy, tmp_path):
     cli(toy, "metrics", "--save-baseline", str(base))
     assert base.read_text().startswith("# why: noisy\ntolerances:")
     assert yaml.safe_load(base.read_text()) == {"tolerances": doc["tolerances"], "metrics": m}
+    # merging keeps the worse value per metric (frames: higher is not better, so the larger)
+    base.write_text("# why: noisy\n" + yaml.safe_dump({"tolerances": doc["tolerances"]}) +
+                    yaml.safe_dump({"metrics": {"toy/frames": 50.0, "toy/total": m["toy/total"] - 3,
+                                                "old/r2_fx": 0.5}}))
+    cli(toy, "metrics", "--merge-baseline", str(base))
+    assert base.read_text().startswith("# why: noisy\ntolerances:")
+    assert yaml.safe_load(base.read_text())["metrics"] == {"old/r2_fx": 0.5, "toy/frames": 50.0,
+                                                           "toy/total": m["toy/total"]}
     doc["metrics"]["toy/gone"] = 1.0
     base.write_text(yaml.safe_dump(doc))
     p = cli(toy, "metrics", "--baseline", str(base), check=False)
@@ -117,3 +125,11 @@ def test_dvc_export_and_repro(toy):
     assert "Running stage 'shifted__letter-a'" not in r.stdout
     (toy / "dvc.yaml").write_text("stages: {}\n")
     assert cli(toy, "dvc", "--check", check=False).returncode == 1
+
+
+def test_merged_baseline_keeps_the_worse_value_in_each_metrics_direction():
+    from pipeline.metrics import merged_worse
+    base = {"s/a/r2_fx": 0.5, "s/a/mae_fx": 1.0, "s/a/iou": 0.9, "only/base": 2.0}
+    cur = {"s/a/r2_fx": 0.7, "s/a/mae_fx": 1.4, "s/a/iou": 0.8, "only/cur": 3.0}
+    assert merged_worse(base, cur) == {"only/base": 2.0, "only/cur": 3.0, "s/a/iou": 0.8,
+                                       "s/a/mae_fx": 1.4, "s/a/r2_fx": 0.5}

@@ -120,3 +120,37 @@ def test_image_study_metrics_matrices_and_figures():
     with pytest.raises(KeyError, match="source=C,target=B"):
         nodes.image_study(study="x", pairs=[["C", "B"]], features=feats, translated=near, warped={},
                           kid_subset=5)
+
+
+def test_translations_into_a_listed_taxel_skin_are_redrawn_as_its_dots(skins, monkeypatch):
+    """flow_warp into a z-only taxel skin named in redraw_taxels: the warp moved the dots, the
+    output has them back at their taxel centres (exactly uskin.redraw of the plain output);
+    a skin not listed is left alone, and a listed skin that is not taxel dots is refused."""
+    from stages.markers.uskin import MID_SCALE, read_dots, redraw, signal_to_marker, taxel_centres
+    monkeypatch.setattr("stages.imagemetrics.inception_features",
+                        lambda images, **kw: np.zeros((len(images), 4)))
+    src = skins["Circle3"]
+    size = src["images"].shape[1:]
+    settings = {"size": list(size), "pad_mm": [24.6, 22.6], "z_only": True, "base_area": 2.0,
+                "max_area": 16.0, "max_offset": 0.8}
+    base = np.full((16, 3), MID_SCALE)
+    raw = base + np.random.default_rng(0).uniform(0, 900, (len(src["images"]), 16, 3))
+    kw = {k: v for k, v in settings.items() if k != "size"}
+    tgt = {**src, "images": signal_to_marker(raw, base, size=size, **kw),
+           "reference": signal_to_marker(base, base, size=size, **kw),
+           "attrs": {"look": "taxel", "settings": settings}}
+    run = dict(source_markers=src, target_markers=tgt, eval_indenters=["wave"], n_eval=4, target="uskin-z")
+    plain_chunks, plain = run_node(nodes.flow_warp_sequence(**run))
+    chunks, out = run_node(nodes.flow_warp_sequence(**run, redraw_taxels=["uskin-3axis", "uskin-z"]))
+    warped = np.concatenate([c["images"] for c in plain_chunks])
+    images = np.concatenate([c["images"] for c in chunks])
+    assert "redraw_taxels" not in plain["attrs"] and out["attrs"]["redraw_taxels"] is True
+    centres, _ = read_dots(warped)
+    assert np.abs(centres - taxel_centres()).max() > 0.3          # the warp moved dots (mm)
+    np.testing.assert_array_equal(images, redraw(warped, settings))
+    centres, _ = read_dots(images)
+    assert np.abs(centres - taxel_centres()).max() < 0.1
+    with pytest.raises(ValueError, match=r"m2m.redraw_taxels names 'Array3', whose markers are not taxel dots"):
+        run_node(nodes.flow_warp_sequence(source_markers=src, target_markers=skins["Array3"],
+                                          eval_indenters=["wave"], n_eval=4, target="Array3",
+                                          redraw_taxels=["Array3"]))

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from stages.markers.patterns import USKIN_PAD_MM, rasterize, uskin_pattern
-from stages.markers.uskin import (BASE_AREA, GAINS, MID_SCALE, parse_xela, signal_to_marker,
-                                  taxel_centres, taxel_sequence, taxel_signals, taxel_weights)
+from stages.markers.uskin import (BASE_AREA, GAINS, MID_SCALE, _dots, parse_xela, read_dots, redraw,
+                                  signal_to_marker, taxel_centres, taxel_sequence, taxel_signals,
+                                  taxel_weights)
 from tests.helpers import drain
 
 PAD_W, PAD_H = USKIN_PAD_MM
@@ -129,6 +130,52 @@ def test_z_only_markers_ignore_xy():
     ref = signal_to_marker(BASE, BASE, size=SIZE)
     assert np.array_equal(signal_to_marker(raw, BASE, size=SIZE, z_only=True), ref)
     assert not np.array_equal(signal_to_marker(raw, BASE, size=SIZE), ref)
+
+
+def _random_raw(n, lateral_std, seed=0):
+    rng = np.random.default_rng(seed)
+    return BASE + np.concatenate([rng.normal(0, lateral_std, (n, 16, 2)),
+                                  rng.uniform(0, 1500, (n, 16, 1))], -1)
+
+
+@pytest.mark.parametrize("z_only", [False, True])
+def test_read_dots_recovers_what_signal_to_marker_drew(z_only):
+    kw = dict(size=SIZE, s_xy=20000.0, s_z=150.0, base_area=2.0 if z_only else BASE_AREA,
+              max_area=16.0, max_offset=0.8, z_only=z_only)
+    raw = _random_raw(40, 3000)               # 0.15 grid units, about 5 px, per axis
+    images = signal_to_marker(raw, BASE, **kw)
+    centres, areas = _dots(raw, BASE, pad_mm=USKIN_PAD_MM, **{k: v for k, v in kw.items() if k not in ("size", "z_only")},
+                           z_only=z_only)
+    got_c, got_a = read_dots(images)
+    # a pixel is 0.034 mm^2; a dot's rasterised edge gains or loses a few of them
+    assert np.abs(got_a - areas).mean() < 0.2 and np.median(np.abs(got_a - areas) / areas) < 0.03
+    assert np.abs(got_c - centres).mean() < 0.03 and np.abs(got_c - centres).max() < (1e-6 if z_only else 0.8)
+    redrawn = redraw(images, kw)
+    assert (redrawn != images).sum((1, 2)).mean() < (30 if z_only else 80)   # of 16384 pixels
+
+
+def test_redraw_puts_z_only_dots_back_at_their_taxels():
+    """A translation that moved a z-only dot (which the skin cannot show) is redrawn with the
+    dot at its taxel centre and the same area; for the 3-axis skin the move stays, clipped to
+    max_offset; empty cells get base_area dots, oversized ones max_area."""
+    kw = dict(size=SIZE, base_area=2.0, max_area=12.0, max_offset=0.5)
+    raw = BASE.copy()
+    raw[6, 0] += 4000                         # taxel 6 moved 0.2 grid units (6.4 px) in x
+    raw[6, 2] += 900                          # and 6 mm^2 larger
+    moved = signal_to_marker(raw, BASE, s_xy=20000.0, s_z=150.0, **kw)
+    moved[100:128, 100:128] = 0               # taxel 15's dot erased
+    moved[0:32, 0:32] = 255                   # taxel 0's cell filled: 34.7 mm^2
+    z = redraw(moved[None], {**kw, "z_only": True})[0]
+    x, y, a = _dot(z, 6)
+    assert (x, y) == pytest.approx(((2 + 0.5) * 32, (1 + 0.5) * 32), abs=0.05)
+    assert a == pytest.approx(8.0 * PX_PER_MM2, rel=0.04)
+    ref = signal_to_marker(BASE, BASE, **kw)
+    assert _dot(z, 15) == pytest.approx(_dot(ref, 15))          # a base_area dot again
+    assert _dot(z, 0)[2] == pytest.approx(12.0 * PX_PER_MM2, rel=0.03)
+    three = redraw(moved[None], {**kw, "z_only": False})[0]
+    assert _dot(three, 6, near=(6, 0))[0] - 80 == pytest.approx(6.4, abs=0.3)
+    with pytest.raises(ValueError, match=r"redraw: images are \(128, 128\), the skin draws \(64, 64\)"):
+        redraw(moved[None], {**kw, "size": [64, 64]})
 
 
 def test_reference_is_the_uskin_pattern_and_batches_work():
