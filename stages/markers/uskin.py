@@ -200,7 +200,7 @@ def read_dots(images, *, pad_mm=USKIN_PAD_MM, iterations: int = 3):
         p = np.stack([xs[xi], ys[yi]], 1)
         c = grid.copy()
         for _ in range(max(1, int(iterations))):
-            owner = np.argmin(((p[:, None] - c[None]) ** 2).sum(-1), 1)
+            owner = np.argmin((c ** 2).sum(1)[None] - 2.0 * (p @ c.T), 1)   # nearest centre
             count = np.bincount(owner, minlength=len(c))
             has = count > 0
             for k in (0, 1):
