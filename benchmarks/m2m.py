@@ -10,8 +10,9 @@ translated images/s with the one-step generator and with the 4-step sampler (bat
 stages.m2m.model.Translator, uint8 in and out); then flow-warp images/s (stages.m2m.flow on
 synthetic deformed marker images), the taxel redraw's images/s (stages.markers.uskin.redraw
 of 3-axis uSkin images with moved and grown dots, as m2m.redraw_taxels applies it after a
-translation) and InceptionV3 feature images/s (stages.imagemetrics, batch 32).  Wall time and, in brackets, CPU time of the process: on a shared machine the CPU
-column is the one to compare.
+translation) and InceptionV3 feature images/s (stages.imagemetrics, batch 32).  Wall time
+and, in brackets, CPU time of the process: on a shared machine the CPU column is the one to
+compare.
 """
 import argparse
 import os

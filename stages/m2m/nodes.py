@@ -238,8 +238,9 @@ def translate_sequence(*, model, source_markers, target_markers, eval_indenters:
         redraw_taxels)
     with torch_threads():
         result = yield from _stream(source_markers, target_markers, eval_indenters, n_eval, convert, "m2m")
-    result["attrs"].update(sampler_steps=int(sampler_steps), **({"redraw_taxels": True} if redrawn else {}),
-                           source=source, target=target)
+    result["attrs"].update(sampler_steps=int(sampler_steps), source=source, target=target)
+    if redrawn:
+        result["attrs"]["redraw_taxels"] = True
     return result
 
 
@@ -253,7 +254,9 @@ def flow_warp_sequence(*, source_markers, target_markers, eval_indenters: list[s
     convert, redrawn = _in_target_space(lambda ims: np.stack([warp(tgt_ref, flow.field(im)) for im in ims]),
                                         target_markers, target, redraw_taxels)
     result = yield from _stream(source_markers, target_markers, eval_indenters, n_eval, convert, "flow_warp")
-    result["attrs"].update(**({"redraw_taxels": True} if redrawn else {}), source=source, target=target)
+    result["attrs"].update(source=source, target=target)
+    if redrawn:
+        result["attrs"]["redraw_taxels"] = True
     return result
 
 
