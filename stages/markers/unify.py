@@ -22,7 +22,7 @@ from stages.markers.uskin import LABEL_KEYS, USKIN_PAD_MM, signal_to_marker
 
 LOOKS = ("none", "gelsight", "tactip", "taxel")
 POLARITY = {"gelsight": "dark", "tactip": "bright"}
-TAXEL_KEYS = ("s_xy", "s_z", "base_area", "max_area", "max_offset")
+TAXEL_KEYS = ("s_xy", "s_z", "base_area", "min_area", "max_area", "max_offset")
 CHUNK = 64          # frames per streamed chunk
 EXAMPLES = 4        # frames shown in figures/examples
 
@@ -72,7 +72,7 @@ def marker_sequence(*, source: Mapping, skin: str, spec: Mapping, segmentation: 
     source: a render[skin] artifact (truth, raw, truth_reference, raw_reference, labels) or a
     taxels[skin] artifact (signals, baseline, labels).  spec: the skin's params; uses `look`,
     and for the taxel look `size` [H, W] plus the optional signal_to_marker constants s_xy,
-    s_z, base_area, max_area, max_offset, and `pad_mm` / `variant` (default: the source's
+    s_z, base_area, min_area, max_area, max_offset, and `pad_mm` / `variant` (default: the source's
     attrs; variant "z" draws z-only dots).  segmentation: segment() parameters, see
     segmentation_params.
     """

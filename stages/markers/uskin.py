@@ -21,8 +21,11 @@ Signal-to-marker (`signal_to_marker`, FACTS): every taxel is a white elliptical 
 canvas spanning the pad; the dot starts at its cell centre and moves
     clip((raw_xy - baseline_xy) / s_xy, -max_offset, max_offset)  grid units
 (one grid unit = one taxel pitch, pad / 4 along each axis; +x right, +y down), and its area is
-    clip(base_area + (raw_z - baseline_z) / s_z, base_area, max_area)   mm^2 on the pad,
-so pressing (z above baseline) grows the dot and pulling never shrinks it below base_area.
+    clip(base_area + (raw_z - baseline_z) / s_z, min_area, max_area)   mm^2 on the pad,
+so pressing (z above baseline) grows the dot.  min_area defaults to base_area: pulling never
+shrinks a dot.  A z-only skin sets it below base_area, so that a taxel the pad lifts away
+(z below baseline) shrinks its dot: under shear the pad sinks behind the contact and rises
+before it, and that signed pattern is all a z-only skin knows of the shear.
 Areas are in mm^2 of pad surface, so an image is the same at any output size; a dot is a
 circle in mm, drawn with the pad-to-pixel scale of each axis (as patterns.rasterize does), and
 base_area = BASE_AREA = pi (0.2 * 22.6 / 4)^2 = 4.01 mm^2 reproduces the `uskin` reference
@@ -126,7 +129,8 @@ def taxel_signals(displacement, grid_x, grid_y, *, pad_mm=USKIN_PAD_MM, gains=GA
     return np.clip(np.rint(raw), 0, 65535).astype(np.int32)
 
 
-def _dots(raw, baseline, *, pad_mm, s_xy, s_z, base_area, max_area, max_offset, z_only):
+def _dots(raw, baseline, *, pad_mm, s_xy, s_z, base_area, max_area, max_offset, z_only,
+          min_area=None):
     """(N, 16, 2) dot centres, mm, and (N, 16) dot areas, mm^2."""
     delta = np.asarray(raw, float) - np.asarray(baseline, float)
     rows, cols = TAXELS
@@ -135,20 +139,21 @@ def _dots(raw, baseline, *, pad_mm, s_xy, s_z, base_area, max_area, max_offset, 
     if z_only:
         offset = np.zeros_like(offset)
     centres = taxel_centres(pad_mm) + offset * pitch
-    area = np.clip(base_area + delta[..., 2] / float(s_z), base_area, max_area)
+    low = base_area if min_area is None else min_area
+    area = np.clip(base_area + delta[..., 2] / float(s_z), low, max_area)
     return centres, area
 
 
 def signal_to_marker(raw, baseline, *, size=(128, 128), pad_mm=USKIN_PAD_MM, s_xy: float = 4000.0,
                      s_z: float = 150.0, base_area: float = BASE_AREA, max_area: float = 16.0,
                      max_offset: float = 0.8, z_only: bool = False,
-                     supersample: int = 4) -> np.ndarray:
+                     min_area: float | None = None, supersample: int = 4) -> np.ndarray:
     """Marker images (N, H, W) uint8 0/255 of raw taxel counts (N, 16, 3) (or one (16, 3)
     reading -> (H, W)), relative to the rest reading `baseline` (16, 3).
 
-    s_xy: counts per grid unit of dot motion; s_z: counts per mm^2 of dot area; base_area,
-    max_area: dot area range, mm^2 on the pad; max_offset: grid units; z_only: dots stay at
-    their cell centres (z-only uSkin).  See the module docstring for the conventions.
+    s_xy: counts per grid unit of dot motion; s_z: counts per mm^2 of dot area; base_area: the
+    dot area at rest, min_area (default base_area) .. max_area its range, mm^2 on the pad;
+    max_offset: grid units; z_only: dots stay at their cell centres (z-only uSkin).  See the module docstring for the conventions.
     """
     data = np.asarray(raw)
     single = data.ndim == 2
@@ -158,9 +163,12 @@ def signal_to_marker(raw, baseline, *, size=(128, 128), pad_mm=USKIN_PAD_MM, s_x
                          f"{np.shape(raw)} and {np.shape(baseline)}")
     if not 0 < base_area <= max_area:
         raise ValueError(f"signal_to_marker: need 0 < base_area <= max_area, got {base_area}, {max_area}")
+    if min_area is not None and not 0 < min_area <= base_area:
+        raise ValueError(f"signal_to_marker: need 0 < min_area <= base_area, got {min_area}, {base_area}")
     pad = tuple(float(v) for v in pad_mm)
     centres, area = _dots(data, baseline, pad_mm=pad, s_xy=s_xy, s_z=s_z, base_area=base_area,
-                          max_area=max_area, max_offset=max_offset, z_only=z_only)
+                          max_area=max_area, max_offset=max_offset, z_only=z_only,
+                          min_area=min_area)
     out = _draw(centres, area, size=size, pad_mm=pad, supersample=supersample)
     return out[0] if single else out
 
@@ -212,9 +220,9 @@ def read_dots(images, *, pad_mm=USKIN_PAD_MM, iterations: int = 3):
 def redraw(images, settings: Mapping, supersample: int = 4) -> np.ndarray:
     """Images (N, H, W) 0/255 read as a taxel skin's dots (read_dots) and drawn again as
     signal_to_marker draws that skin.  settings: the skin's signal_to_marker keywords (a taxel
-    markers artifact's attrs["settings"]); pad_mm, base_area, max_area, max_offset and z_only
-    are used (defaults as signal_to_marker's), s_xy and s_z scale signals and do not matter here.
-    Areas are clipped to base_area..max_area, offsets to max_offset grid units, and a z-only
+    markers artifact's attrs["settings"]); pad_mm, base_area, min_area, max_area, max_offset
+    and z_only are used (defaults as signal_to_marker's), s_xy and s_z scale signals and do not
+    matter here.  Areas are clipped to min_area..max_area, offsets to max_offset grid units, and a z-only
     skin's dots stay at their taxel centres.  An image of the skin redraws as itself up to the
     dots' rasterised edges; a translation into the skin becomes an image the skin can show
     (z-only dots cannot move)."""
@@ -226,6 +234,7 @@ def redraw(images, settings: Mapping, supersample: int = 4) -> np.ndarray:
     if size != ims.shape[1:]:
         raise ValueError(f"redraw: images are {ims.shape[1:]}, the skin draws {size}")
     base_area = float(settings.get("base_area", BASE_AREA))
+    min_area = float(settings.get("min_area", base_area))
     max_area = float(settings.get("max_area", 16.0))
     max_offset = float(settings.get("max_offset", 0.8))
     z_only = bool(settings.get("z_only", False))
@@ -234,7 +243,7 @@ def redraw(images, settings: Mapping, supersample: int = 4) -> np.ndarray:
     grid = taxel_centres(pad)
     limit = 0.0 if z_only else max_offset
     centres = grid + np.clip(centres - grid, -limit * pitch, limit * pitch)
-    return _draw(centres, np.clip(areas, base_area, max_area), size=ims.shape[1:], pad_mm=pad,
+    return _draw(centres, np.clip(areas, min_area, max_area), size=ims.shape[1:], pad_mm=pad,
                  supersample=supersample)
 
 

@@ -106,11 +106,16 @@ def test_taxel_look_draws_signals(variant):
     source = Art({"signals": signals, "baseline": baseline, **labels(n)},
                  attrs={"variant": variant, "pad_mm": [24.6, 22.6]})
     spec = {"look": "taxel", "size": [64, 80], "s_xy": 2000.0, "s_z": 100.0, "base_area": 3.0,
-            "max_area": 12.0, "max_offset": 0.8}
+            "min_area": 1.0, "max_area": 12.0, "max_offset": 0.8}
     _, out = run(marker_sequence(source=source, skin=f"uskin-{variant}", spec=spec, segmentation={}))
-    kw = {k: spec[k] for k in ("s_xy", "s_z", "base_area", "max_area", "max_offset")}
+    kw = {k: spec[k] for k in ("s_xy", "s_z", "base_area", "min_area", "max_area", "max_offset")}
     expect = signal_to_marker(signals, baseline, size=(64, 80), z_only=variant == "z", **kw)
     assert np.array_equal(out["images"], expect) and out["images"].shape == (n, 64, 80)
+    # readings 3000 under the rest shrink dots below base_area: min_area reached the drawing
+    assert not np.array_equal(out["images"], signal_to_marker(
+        signals, baseline, size=(64, 80), z_only=variant == "z",
+        **{k: v for k, v in kw.items() if k != "min_area"}))
+    assert out["attrs"]["settings"]["min_area"] == 1.0
     assert np.array_equal(out["reference"], signal_to_marker(baseline, baseline, size=(64, 80), **kw))
     assert cv2.connectedComponents(out["reference"])[0] - 1 == 16
     assert_labels_copied(out, source)

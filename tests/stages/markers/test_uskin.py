@@ -123,6 +123,36 @@ def test_signal_to_marker_clips_offset_and_area():
     assert img.shape == SIZE and img.dtype == np.uint8 and set(np.unique(img)) == {0, 255}
 
 
+def test_min_area_lets_a_lifted_taxel_shrink_its_dot():
+    """Below base_area only with min_area: z 300 counts under the rest reading at s_z 300 is
+    1 mm^2 off a 2 mm^2 dot; a reading far below stops at min_area; the reference and a
+    pressed dot are the same with or without it."""
+    kw = dict(size=SIZE, s_xy=20000.0, s_z=300.0, base_area=2.0, max_area=16.0, z_only=True)
+    raw = BASE.copy()
+    raw[5, 2] -= 300                          # the pad lifted off taxel 5
+    raw[6, 2] -= 10 ** 4                      # far off taxel 6
+    raw[9, 2] += 900                          # taxel 9 pressed: 2 + 3 mm^2
+    floor = signal_to_marker(raw, BASE, min_area=0.5, **kw)
+    plain = signal_to_marker(raw, BASE, **kw)
+    ref = signal_to_marker(BASE, BASE, **kw)
+    assert np.array_equal(signal_to_marker(BASE, BASE, min_area=0.5, **kw), ref)
+    # small dots: the rasterised edge is a larger share of them
+    assert _dot(floor, 5)[2] == pytest.approx(1.0 * PX_PER_MM2, rel=0.12)       # about 29 px
+    assert _dot(floor, 6)[2] == pytest.approx(0.5 * PX_PER_MM2, rel=0.2)        # about 15 px
+    assert _dot(floor, 6)[2] < _dot(floor, 5)[2] < _dot(ref, 5)[2] / 1.6
+    assert _dot(plain, 5) == pytest.approx(_dot(ref, 5)) and _dot(plain, 6) == pytest.approx(_dot(ref, 6))
+    assert _dot(floor, 9) == pytest.approx(_dot(plain, 9))
+    assert _dot(floor, 9)[2] == pytest.approx(5.0 * PX_PER_MM2, rel=0.03)
+    # redraw keeps what the skin can show: the shrunken dot stays, an erased one comes back at min_area
+    floor[96:, 96:] = 0                       # taxel 15's dot erased
+    back = redraw(floor[None], {**kw, "min_area": 0.5})[0]
+    assert _dot(back, 5)[2] == pytest.approx(_dot(floor, 5)[2], rel=0.1)
+    assert _dot(back, 15)[2] == pytest.approx(_dot(floor, 6)[2], rel=0.1)
+    assert _dot(redraw(floor[None], kw)[0], 15) == pytest.approx(_dot(ref, 15))
+    with pytest.raises(ValueError, match=r"need 0 < min_area <= base_area, got 3.0, 2.0"):
+        signal_to_marker(raw, BASE, min_area=3.0, **kw)
+
+
 def test_z_only_markers_ignore_xy():
     raw = BASE.copy()
     raw[:, 0] += 3000
