@@ -66,6 +66,7 @@ class ArtifactWriter:
         self.digest = ContentDigest()
         self.attrs: dict[str, Any] = {}
         self.metrics: dict[str, float] = {}
+        self.timing: dict[str, float | None] = {}   # provenance, not content: not digested
         self._streams: dict[str, h5py.Dataset] = {}
         self._whole: set[str] = set()
         self._json_attrs: set[str] = set()
@@ -127,6 +128,8 @@ class ArtifactWriter:
         prov = {**self.provenance, "digest": digest, "seconds": seconds,
                 "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
                 "metrics": self.metrics, "json_attrs": sorted(self._json_attrs)}
+        if self.timing:
+            prov["timing"] = self.timing
         for k, v in self.attrs.items():
             self.file.attrs[k] = v
         self.file.attrs[PROVENANCE_ATTR] = json.dumps(prov, sort_keys=True)
@@ -207,6 +210,12 @@ class Artifact(Mapping):
     @property
     def metrics(self) -> dict[str, float]:
         return self.provenance.get("metrics", {})
+
+    @property
+    def timing(self) -> dict[str, float | None]:
+        """The node's own timings (flattened names -> seconds, rates): provenance, so outside
+        the content digest."""
+        return self.provenance.get("timing", {})
 
     def close(self) -> None:
         self._file.close()

@@ -28,7 +28,7 @@ from pipeline.metrics import higher_is_better
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 MEAN_ROW = "mean"
 FIGURE_FILE = re.compile(r"^[0-9a-f]{12}-[A-Za-z0-9._-]+\.png$")  # files this module writes
-PROVENANCE_FIELDS = ("params", "key", "code", "inputs", "created", "seconds", "host")
+PROVENANCE_FIELDS = ("params", "key", "code", "inputs", "created", "seconds", "timing", "host")
 
 CSS = """:root{--line:#d0d7de;--head:#f0f3f6;--best:#c9efcf;--muted:#57606a}
 body{font:14px/1.45 system-ui,-apple-system,"Segoe UI",sans-serif;margin:0;color:#1f2328}
@@ -317,10 +317,10 @@ def _prov_html(v: NodeView, *, full: bool) -> str:
     else:
         fields = {"params": prov.get("params"), "key": v.key, "code": prov.get("code"),
                   "inputs": prov.get("inputs", rec.get("inputs")), "created": rec.get("created"),
-                  "seconds": rec.get("seconds"), "host": rec.get("host")}
-        items = "".join(f"<dt>{k}</dt><dd>" + (f"<pre>{_json(fields[k])}</pre>" if k in ("params", "inputs")
+                  "seconds": rec.get("seconds"), "timing": prov.get("timing"), "host": rec.get("host")}
+        items = "".join(f"<dt>{k}</dt><dd>" + (f"<pre>{_json(fields[k])}</pre>" if k in ("params", "inputs", "timing")
                                                else f"<code>{esc(fields[k])}</code>") + "</dd>"
-                        for k in PROVENANCE_FIELDS)
+                        for k in PROVENANCE_FIELDS if k != "timing" or fields[k])
         body, anchor = f"<dl class='info'>{items}</dl>", ""
     return (f"<details{anchor}><summary>{esc(v.name)} <code>{esc((v.key or '')[:12])}</code></summary>"
             f"{body}</details>")

@@ -177,8 +177,9 @@ class Scheduler:
                 self.store.log_run([r["key"] for r in done.values()], meta or {})
         if failure:
             n, out = failure
-            if out.get("user_error"):
-                raise PipelineError(f"node {n}: {out['error']}")
+            if out.get("user_error"):   # one line naming the node once
+                err = str(out["error"])
+                raise PipelineError(err if err.startswith(f"node {n}") else f"node {n}: {err}")
             raise NodeFailed(n, out["error"], out.get("traceback", ""))
         return [results[n] for n in names]
 

@@ -2,8 +2,11 @@
 
 A task is a plain dict (keys, paths, params), so the same function runs in-process, in
 a spawned process or on a Dask worker; no HDF5 object ever crosses a process boundary.
-A node function returns a mapping (datasets, plus optional "attrs" and "metrics"), or is
-a generator yielding chunks appended along axis 0 and returning that final mapping.
+A node function returns a mapping (datasets, plus optional "attrs", "metrics" and "timing"),
+or is a generator yielding chunks appended along axis 0 and returning that final mapping.
+"timing" (numbers, nested mappings flattened to a/b/c names: seconds, images/s...) goes to the
+provenance, beside the engine's own seconds, and out of the content digest: a re-run that
+makes the same content at another speed is still an early cutoff.
 A function with a `staging_dir` parameter gets `<store>/staging` (hardware capture keeps its
 resumable staging files there).  An exception whose class sets `user_error = True` (a device
 that is missing or disconnects) is reported as one line, like a PipelineError.
@@ -21,7 +24,7 @@ from typing import Any, Mapping
 
 from pipeline.errors import PipelineError
 
-_RESERVED = ("attrs", "metrics")
+_RESERVED = ("attrs", "metrics", "timing")
 
 
 _LOADED: dict[str, tuple[int, int]] = {}  # project source file -> (mtime_ns, size) at import
@@ -113,6 +116,12 @@ def _write_final(writer, result: Mapping[str, Any], instance: str) -> None:
         if math.isnan(value):
             raise PipelineError(f"node {instance}: metric '{name}' is NaN")
         writer.metrics[name] = value
+    for name, value in _flatten(dict(result.get("timing", {}))):
+        try:
+            value = float(value)
+        except (TypeError, ValueError):
+            raise PipelineError(f"node {instance}: timing '{name}' is not a number: {value!r}") from None
+        writer.timing[name] = value if math.isfinite(value) else None
     for name, value in _flatten({k: v for k, v in result.items() if k not in _RESERVED}):
         writer.put(name, value)
 

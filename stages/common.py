@@ -38,3 +38,23 @@ def torch_threads(n: int | None = None):
         yield
     finally:
         torch.set_num_threads(old)
+
+
+TIMING_KEYS = frozenset({"seconds", "steps_per_s", "samples_per_s", "frames_per_s", "images_per_s"})
+
+
+def split_timing(record: Mapping) -> tuple[dict, dict]:
+    """(record without its timings, the timings): a training history, nested or not, split so
+    that the timings go to a node's "timing" (provenance, outside the content digest: a re-run
+    at another speed keeps its digest) and the rest to its attrs."""
+    kept, timing = {}, {}
+    for k, v in record.items():
+        if isinstance(v, Mapping):
+            kept[k], sub = split_timing(v)
+            if sub:
+                timing[k] = sub
+        elif k in TIMING_KEYS:
+            timing[k] = v
+        else:
+            kept[k] = v
+    return kept, timing

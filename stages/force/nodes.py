@@ -18,7 +18,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from stages.common import attrs_of
+from stages.common import attrs_of, split_timing
 
 TRAIN_DEFAULTS = {
     "seq_len": 32,                # longest training window (frames)
@@ -94,9 +94,11 @@ def fit_own(*, markers: Mapping, skin: str, train_indenters: Sequence[str], conf
     model, history = fit(seqs, model_cfg, steps=int(steps), batch_size=int(batch_size), lr=float(lr),
                          seed=int(seed), seq_len=int(train["seq_len"]), desc=f"own[{skin}]")
     model.set_reference(reference)
+    kept, timing = split_timing(history)
     return {"weights": to_arrays(model),
             "attrs": {"config": model.config, "train": train, "skin": skin,
-                      "train_indenters": list(train_indenters), "history": history},
+                      "train_indenters": list(train_indenters), "history": kept},
+            "timing": timing,
             "figures": {"loss": loss_figure({skin: history}, f"own[{skin}]")}}
 
 
@@ -163,6 +165,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     rows = np.concatenate([np.arange(a, b) for a, b in runs])
     scale = (np.ones(rows.size) if identity else
              label_scale(depth[rows], loading[rows], src_curves, tgt_curves, depth_ratio=k))
+    kept, timing = split_timing(histories)
     figures = {"loss": loss_figure(histories, name),
                "compensation": curves_figure({source: (source_calibration, src_curves),
                                               target: (target_calibration, tgt_curves)},
@@ -178,7 +181,8 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
                       "label_scale": {"mean": float(scale.mean()), "min": float(scale.min()),
                                       "max": float(scale.max())},
                       "train_indenters": None if train_indenters is None else list(train_indenters),
-                      "history": histories},
+                      "history": kept},
+            "timing": timing,
             "figures": figures}
 
 
@@ -219,9 +223,11 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
                                    seq_len=int(train["seq_len"]),
                                    finetune_lr_factor=float(train["finetune_lr_factor"]), desc=name)
     model.set_reference(reference)
+    kept, timing = split_timing(history)
     return {"genforce_comp": to_arrays(model),
             "attrs": {"config": model.config, "train": train, "source": info["source"],
-                      "target": info["target"], "seed": int(seed), "history": history}}
+                      "target": info["target"], "seed": int(seed), "history": kept},
+            "timing": timing}
 
 
 def _depth_ratio(mode: str, source_depth, target_markers, name: str) -> float:

@@ -110,10 +110,9 @@ def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_
                   "lr": float(lr), "seed": int(seed), "change_weight": float(change_weight),
                   "change_share": float(change_share), "target_balance": float(target_balance),
                   "target_share": {s: round(float(v), 4) for s, v in zip(skins, share)},
-                  "seconds": round(hist["seconds"], 2),
-                  "steps_per_s": round(hist["steps_per_s"], 3),
                   "final_loss": float(np.mean(tail)) if len(tail) else float("nan"),
                   "parameters": int(sum(v.size for v in weights.values()))},
+        "timing": {"seconds": round(hist["seconds"], 2), "steps_per_s": round(hist["steps_per_s"], 3)},
     }
 
 
@@ -197,8 +196,8 @@ def _stream(source, target, eval_indenters, n_eval, convert, method: str):
         "eval_frames": frames.astype(np.int64),
         "figures": {"examples": png(_examples_sheet(source, target, rows, kept))},
         "attrs": {"method": method, "frames": int(n), "n_eval": int(len(rows)),
-                  "eval_indenters": list(eval_indenters), "seconds": round(seconds, 2),
-                  "images_per_s": round(n / max(seconds, 1e-9), 1)},
+                  "eval_indenters": list(eval_indenters)},
+        "timing": {"seconds": round(seconds, 2), "images_per_s": round(n / max(seconds, 1e-9), 1)},
     }
     if "indenters" in source:
         result["indenters"] = [str(v) for v in np.asarray(source["indenters"]).ravel()]
@@ -329,8 +328,8 @@ def image_study(*, study: str, pairs: list, features: Mapping, translated: Mappi
         "figures": figures,
         "metrics": metrics,
         "attrs": {"study": study, "pairs": len(pairs), "methods": methods, "kid_subset": int(kid_subset),
-                  "fid_drop": {m: round(v, 2) for m, v in drop.items()},
-                  "seconds": round(time.perf_counter() - t0, 2)},
+                  "fid_drop": {m: round(v, 2) for m, v in drop.items()}},
+        "timing": {"seconds": round(time.perf_counter() - t0, 2)},
     }
 
 

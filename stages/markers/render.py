@@ -330,7 +330,8 @@ def render_sequence(*, deform: Mapping, patterns: Mapping, skin: str, spec: Mapp
     out["figures"] = {"frames": png(contact_sheet([img for row in rows for img in row], cols=len(rows[0])))}
     out["attrs"] = {"backend": renderer.backend, "spp": int(spp), "size": list(renderer.size),
                     "look": look, "pattern": str(spec["pattern"]), "sensor": str(spec.get("sensor", "")),
-                    "seconds_per_frame": seconds / n if n else 0.0, "fov_x_deg": renderer.fov_x,
+                    "fov_x_deg": renderer.fov_x,
                     "camera_distance_mm": renderer.distance, "texture_size": list(renderer.texture.shape),
                     "noise": renderer.noise, "seed": seed, "threads": THREADS}
+    out["timing"] = {"seconds_per_frame": seconds / n if n else 0.0}
     return out

@@ -161,3 +161,37 @@ PINNED_TOY_KEYS = {  # ENGINE_VERSION 2
     "scaled": "ab6d59209ba6746a303e25b25510e852",
     "frames": "58a912327eb3e5293aa7ea18130117be",
 }
+
+
+def test_timing_is_provenance_so_a_slower_rerun_is_still_a_cutoff(toy):
+    """A node's own timings change every run; kept in the provenance and out of the digest,
+    they do not make a re-run's content new, and `verify` still passes."""
+    f = toy / "toy" / "nodes.py"
+    timed = ('return {"x": normalise(np.asarray(base["x"])) * scale, "attrs": {"n": 16},\n'
+             '            "timing": {"seconds": time.perf_counter(), "fit": {"steps_per_s": 1 / time.time()}}}')
+    f.write_text(f.read_text().replace('return {"x": normalise(np.asarray(base["x"])) * scale}', timed))
+    from pipeline.artifact import Artifact
+
+    def scaled():
+        with Artifact(cli(toy, "get", "scaled").stdout.strip()) as a:
+            return a.provenance["digest"], a.timing, a.attrs
+
+    first = {n["name"]: n for n in run_json(toy)["nodes"]}
+    digest, timing, attrs = scaled()
+    assert set(timing) == {"seconds", "fit/steps_per_s"} and attrs == {"n": 16}
+    f.write_text(f.read_text().replace('_log("scaled")', '_log("scaled")\n    time.sleep(0.01)'))
+    second = {n["name"]: n for n in run_json(toy)["nodes"]}
+    assert second["scaled"]["status"] == "ran" and first["scaled"]["key"] != second["scaled"]["key"]
+    assert second["shifted[letter=a]"]["status"] == "cutoff" and second["summary"]["status"] == "cached"
+    digest2, timing2, _ = scaled()
+    assert digest2 == digest and timing2["seconds"] != timing["seconds"]
+    assert "0 corrupt" in cli(toy, "verify").stdout
+
+
+def test_timing_that_is_not_a_number_names_the_node(toy):
+    f = toy / "toy" / "nodes.py"
+    f.write_text(f.read_text().replace('return {"x": normalise(np.asarray(base["x"])) * scale}',
+                                       'return {"x": base["x"][:], "timing": {"seconds": "fast"}}'))
+    p = cli(toy, "run", check=False)
+    assert p.returncode == 2
+    assert p.stderr.strip() == "pipeline: error: node scaled: timing 'seconds' is not a number: 'fast'"

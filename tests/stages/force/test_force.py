@@ -293,6 +293,9 @@ def test_fit_own_outputs(nodes_out, skins):
     out = own["A"]
     assert out["attrs"]["config"]["input_size"] == 16 and out["attrs"]["train"]["seq_len"] == 10
     assert out["attrs"]["history"]["contacts"] == 9 and len(out["attrs"]["history"]["loss"]) == 4
+    # timings go to the provenance (out of the digest), the rest of the history stays in attrs
+    assert set(out["timing"]) == {"seconds", "samples_per_s", "frames_per_s"}
+    assert out["timing"]["seconds"] > 0 and not set(out["attrs"]["history"]) & set(out["timing"])
     assert bytes(out["figures"]["loss"][:8]) == PNG
     model = load_model(out)
     assert np.array_equal(model.reference.numpy(), skins["A"]["reference"])
@@ -319,6 +322,8 @@ def test_fit_transfer_identity_copies_genforce(nodes_out):
         np.testing.assert_array_equal(v, same["genforce_comp"][k])
     assert "genforce_comp" not in same["attrs"]["history"]
     assert set(same["attrs"]["history"]["genforce"]) == {"pretrain", "finetune"}
+    assert "seconds" not in same["attrs"]["history"]["genforce"]["finetune"]
+    assert same["timing"]["genforce"]["finetune"]["seconds"] > 0
     assert stiffer["attrs"]["compensation_identity"] is False
     assert stiffer["attrs"]["label_scale"]["min"] == pytest.approx(2.0)
     assert any(not np.array_equal(v, stiffer["genforce_comp"][k]) for k, v in stiffer["genforce"].items())
