@@ -4,13 +4,14 @@
 
 For every frame with a contact, the centroid of the pixels the contact turned on (image minus
 reference) is taken relative to its contact's mean centroid, and correlated with the frame's
-shear force (x with Fx, y with Fy); the dots' mean motion (their centroids against the
-reference's, per 4x4 cell) is regressed on Fx.  On the 3-axis uSkin both follow the shear (the
-dots move with it).  On the z-only uSkin the dots cannot move and the growth centroid runs
-against the shear: a sheared pad sinks behind the contact and rises before it (Cerruti's
-solution, (1 - 2 nu) of the normal response), so the taxels behind it read more load.  A
-translation that draws the centroid with the shear, or moves z-only dots, teaches the
-transferred regressor a shear cue of the wrong sign.
+shear force (x with Fx, y with Fy); so is the centroid of the pixels it turned off (dots
+shrunk below their rest size, which a z-only skin draws when its min_area is below its
+base_area); the dots' mean motion (their centroids against the reference's, per 4x4 cell) is
+regressed on Fx.  On the 3-axis uSkin the dots move with the shear.  On the z-only uSkin they
+cannot move: a sheared pad sinks behind the contact and rises before it (Cerruti's solution,
+(1 - 2 nu) of the normal response), so the growth centroid runs against the shear and the
+shrink centroid with it.  A translation that draws either with the wrong sign, or moves
+z-only dots, teaches the transferred regressor a wrong shear cue.
 """
 import argparse
 import sys
@@ -50,26 +51,33 @@ def cue(art, max_contacts: int = 400) -> dict:
 
     ref_c = dot_centres(ref)
     cx, cy, fs, move, fmove = [], [], [], [], []
+    sx, sy, sf = [], [], []
     for a, b in runs:
         im = np.asarray(art["images"][a:b], float)
-        d = np.clip(im - ref, 0, None)
-        mass = d.sum((1, 2))
-        on = mass > 50 * 255
-        if on.sum() < 3:
-            continue
-        x = (d * xx).sum((1, 2))[on] / mass[on]
-        y = (d * yy).sum((1, 2))[on] / mass[on]
-        cx.append(x - x.mean())
-        cy.append(y - y.mean())
-        fs.append(force[a:b][on])
+        for sign, (ox, oy, of) in ((1, (cx, cy, fs)), (-1, (sx, sy, sf))):
+            d = np.clip(sign * (im - ref), 0, None)     # pixels turned on (grown) / off (shrunk)
+            mass = d.sum((1, 2))
+            on = mass > (50 if sign > 0 else 10) * 255
+            if on.sum() < 3:
+                continue
+            x = (d * xx).sum((1, 2))[on] / mass[on]
+            y = (d * yy).sum((1, 2))[on] / mass[on]
+            ox.append(x - x.mean())
+            oy.append(y - y.mean())
+            of.append(force[a:b][on])
         for i in range(0, len(im), 3):
             move.append((dot_centres(im[i]) - ref_c)[:, 0].mean())
             fmove.append(force[a + i, 0])
     cx, cy, fs = map(np.concatenate, (cx, cy, fs))
+    sx, sy, sf = (np.concatenate(v) if v else np.zeros((0, 3) if i == 2 else 0)
+                  for i, v in enumerate((sx, sy, sf)))
     move, fmove = np.array(move), np.array(fmove)
     return {"frames": len(cx),
             "corr_x": _corr(cx, fs[:, 0]),
             "corr_y": _corr(cy, fs[:, 1]),
+            "shrink_frames": len(sx),
+            "shrink_x": _corr(sx, sf[:, 0]) if len(sx) > 2 else float("nan"),
+            "shrink_y": _corr(sy, sf[:, 1]) if len(sy) > 2 else float("nan"),
             "dot_move_px_per_N": float(np.polyfit(fmove, move, 1)[0]),
             "dot_move_std_px": float(move.std())}
 
@@ -89,10 +97,12 @@ def main(argv=None):
     rows += [(f"{s} -> {args.target} (M2M)", get(f"translate[source={s},target={args.target}]"))
              for s in args.source]
     print(f"{'images':40s} {'frames':>6s} {'corr(cx,Fx)':>11s} {'corr(cy,Fy)':>11s} "
+          f"{'shrunk':>6s} {'corr(sx,Fx)':>11s} {'corr(sy,Fy)':>11s} "
           f"{'dot move px/N':>13s} {'move std px':>11s}")
     for name, art in rows:
         c = cue(art)
         print(f"{name:40s} {c['frames']:6d} {c['corr_x']:11.3f} {c['corr_y']:11.3f} "
+              f"{c['shrink_frames']:6d} {c['shrink_x']:11.3f} {c['shrink_y']:11.3f} "
               f"{c['dot_move_px_per_N']:13.3f} {c['dot_move_std_px']:11.3f}")
 
 

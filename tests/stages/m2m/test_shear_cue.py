@@ -56,6 +56,18 @@ def test_dots_that_grow_behind_the_shear(shear_cue):
     assert abs(c["dot_move_px_per_N"]) < 1e-6
 
 
+def test_dots_that_shrink_ahead_of_the_shear(shear_cue):
+    # z-only with min_area < base_area: the dots ahead of the shear shrink below their rest size
+    # (right for fx > 0) while those behind grow; the rest frame shrinks nothing
+    frames = [draw(0, 1 + int(f > 0), 1 - int(f > 0)) if f > 0 else
+              draw(0, 1 - int(f < 0), 1 + int(f < 0)) for f in FX]
+    c = shear_cue.cue(artifact(frames, FX))
+    assert c["shrink_frames"] == 16                       # 4 sheared frames of each contact
+    assert c["shrink_x"] > 0.9 and c["corr_x"] < -0.9
+    unshrunk = shear_cue.cue(artifact([draw(int(f), 3, 3) for f in FX], FX))
+    assert unshrunk["shrink_frames"] == 0 and np.isnan(unshrunk["shrink_x"])
+
+
 def test_an_unknown_store_entry_is_one_line(shear_cue, tmp_path):
     with pytest.raises(SystemExit, match=r"shear_cue: .*markers\[skin=uskin-z\] is not built"):
         shear_cue.main(["--store", str(tmp_path), "--source", "nowhere"])
