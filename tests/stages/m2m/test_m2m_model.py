@@ -252,3 +252,29 @@ def test_change_per_example_blends_the_skin_share_with_the_examples_own():
     assert got(1.0) == pytest.approx(float(loss_fn(copy, t, ref, change_share=0.2)), rel=1e-6)
     with pytest.raises(ValueError, match=r"change_per_example must be in \[0, 1\], got 1.5"):
         got(1.5)
+
+
+def test_source_gate_starts_shared_patterns_from_the_source_image():
+    """With the network's own output zeroed, the translation is its base image: the source
+    image where source and target share their reference (IoU 1), the target reference where
+    the references differ (IoU ~0.1), and always the target reference without the gate (a
+    model stored before it) -- which then also has no gate weights to load."""
+    cfg = default_config(size=(32, 32), width=8, timesteps=50)
+    net = build(cfg)
+    with torch.no_grad():
+        net.out.weight.zero_()
+        net.out.bias.zero_()
+    weights = state_arrays(net)
+    assert {"gate_scale", "gate_at"} <= set(weights)
+    ref, other = np.zeros((32, 32), np.uint8), np.zeros((32, 32), np.uint8)
+    ref[4::8, 4::8] = ref[5::8, 4::8] = 255                     # 16 two-pixel markers
+    other[2::8, 6::8] = other[2::8, 7::8] = 255                 # elsewhere
+    moved = np.roll(ref, 1, axis=1)[None]                       # every marker one pixel right
+    t = Translator(cfg, weights)
+    np.testing.assert_array_equal(t.translate(moved, ref, ref), moved)
+    np.testing.assert_array_equal(t.translate(moved, ref, other), other[None])
+    old = {k: v for k, v in cfg.items() if k != "source_gate"}
+    plain = Translator(old, {k: v for k, v in weights.items() if k not in ("gate_scale", "gate_at")})
+    np.testing.assert_array_equal(plain.translate(moved, ref, ref), ref[None])
+    with pytest.raises(KeyError, match="do not fit"):
+        build(old, weights)
