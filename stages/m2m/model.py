@@ -112,8 +112,8 @@ class M2MNet(nn.Module):
         self.up1, self.dec1 = nn.Conv2d(c2, c1, 3, padding=1), ResBlock(2 * c1, c1, emb)
         self.up0, self.dec0 = nn.Conv2d(c1, c0, 3, padding=1), ResBlock(2 * c0, c0, emb)
         self.out_norm, self.out = nn.GroupNorm(_groups(c0), c0), nn.Conv2d(c0, 4, 3, padding=1)
-        # logits start from the target reference: the network learns the edits that the
-        # deformation makes to it instead of first learning to copy it
+        # logits start from a base image (the target reference, see base): the network learns
+        # the edits that the deformation makes to it instead of first learning to copy it
         self.ref_gain = nn.Parameter(torch.tensor(3.0))
         self.source_gate = bool(config.get("source_gate", False))
         if self.source_gate:

@@ -153,7 +153,8 @@ def signal_to_marker(raw, baseline, *, size=(128, 128), pad_mm=USKIN_PAD_MM, s_x
 
     s_xy: counts per grid unit of dot motion; s_z: counts per mm^2 of dot area; base_area: the
     dot area at rest, min_area (default base_area) .. max_area its range, mm^2 on the pad;
-    max_offset: grid units; z_only: dots stay at their cell centres (z-only uSkin).  See the module docstring for the conventions.
+    max_offset: grid units; z_only: dots stay at their cell centres (z-only uSkin).  See the
+    module docstring for the conventions.
     """
     data = np.asarray(raw)
     single = data.ndim == 2
@@ -222,8 +223,8 @@ def redraw(images, settings: Mapping, supersample: int = 4) -> np.ndarray:
     signal_to_marker draws that skin.  settings: the skin's signal_to_marker keywords (a taxel
     markers artifact's attrs["settings"]); pad_mm, base_area, min_area, max_area, max_offset
     and z_only are used (defaults as signal_to_marker's), s_xy and s_z scale signals and do not
-    matter here.  Areas are clipped to min_area..max_area, offsets to max_offset grid units, and a z-only
-    skin's dots stay at their taxel centres.  An image of the skin redraws as itself up to the
+    matter here.  Areas are clipped to min_area..max_area, offsets to max_offset grid units,
+    and a z-only skin's dots stay at their taxel centres.  An image of the skin redraws as itself up to the
     dots' rasterised edges; a translation into the skin becomes an image the skin can show
     (z-only dots cannot move)."""
     ims = np.asarray(images)
