@@ -177,9 +177,8 @@ class Scheduler:
                 self.store.log_run([r["key"] for r in done.values()], meta or {})
         if failure:
             n, out = failure
-            if out.get("user_error"):   # one line naming the node once
-                err = str(out["error"])
-                raise PipelineError(err if err.startswith(f"node {n}") else f"node {n}: {err}")
+            if out.get("user_error"):   # one line; the worker's messages leave the node to us
+                raise PipelineError(f"node {n}: {out['error']}")
             raise NodeFailed(n, out["error"], out.get("traceback", ""))
         return [results[n] for n in names]
 

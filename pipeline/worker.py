@@ -103,30 +103,30 @@ def _flatten(mapping: Mapping[str, Any], prefix: str = "") -> list[tuple[str, An
     return out
 
 
-def _write_final(writer, result: Mapping[str, Any], instance: str) -> None:
+def _write_final(writer, result: Mapping[str, Any]) -> None:
     if not isinstance(result, Mapping):
-        raise PipelineError(f"node {instance} returned {type(result).__name__}; "
+        raise PipelineError(f"returned {type(result).__name__}; "
                             "expected a mapping of arrays (or a generator of chunks)")
     writer.set_attrs(result.get("attrs", {}))
     for name, value in dict(result.get("metrics", {})).items():
         try:
             value = float(value)
         except (TypeError, ValueError):
-            raise PipelineError(f"node {instance}: metric '{name}' is not a number: {value!r}") from None
+            raise PipelineError(f"metric '{name}' is not a number: {value!r}") from None
         if math.isnan(value):
-            raise PipelineError(f"node {instance}: metric '{name}' is NaN")
+            raise PipelineError(f"metric '{name}' is NaN")
         writer.metrics[name] = value
     for name, value in _flatten(dict(result.get("timing", {}))):
         try:
             value = float(value)
         except (TypeError, ValueError):
-            raise PipelineError(f"node {instance}: timing '{name}' is not a number: {value!r}") from None
+            raise PipelineError(f"timing '{name}' is not a number: {value!r}") from None
         writer.timing[name] = value if math.isfinite(value) else None
     for name, value in _flatten({k: v for k, v in result.items() if k not in _RESERVED}):
         writer.put(name, value)
 
 
-def _consume(result: Any, writer, instance: str) -> None:
+def _consume(result: Any, writer) -> None:
     if inspect.isgenerator(result):
         while True:
             try:
@@ -135,12 +135,12 @@ def _consume(result: Any, writer, instance: str) -> None:
                 final = stop.value
                 break
             if not isinstance(chunk, Mapping):
-                raise PipelineError(f"node {instance} yielded {type(chunk).__name__}; expected a mapping of arrays")
+                raise PipelineError(f"yielded {type(chunk).__name__}; expected a mapping of arrays")
             for name, value in _flatten(chunk):
                 writer.append(name, value)
-        _write_final(writer, final or {}, instance)
+        _write_final(writer, final or {})
     else:
-        _write_final(writer, result, instance)
+        _write_final(writer, result)
 
 
 def execute(task: dict) -> dict:
@@ -152,7 +152,7 @@ def execute(task: dict) -> dict:
     from pipeline.store import Store
 
     store = Store(task["store"]).init()
-    key, instance = task["key"], task["instance"]
+    key = task["key"]
     with store.lock(key):
         if not task.get("force"):
             rec = store.record(key)
@@ -179,7 +179,7 @@ def execute(task: dict) -> dict:
                                          "inputs", "input_digests", "engine")}
             prov["setup_seconds"] = time.time() - t0
             writer = store.writer(key, prov)
-            _consume(func(**kwargs), writer, instance)
+            _consume(func(**kwargs), writer)
             rec = writer.commit()
             writer = None
             return {"record": rec, "computed": True}

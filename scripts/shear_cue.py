@@ -69,15 +69,15 @@ def cue(art, max_contacts: int = 400) -> dict:
             move.append((dot_centres(im[i]) - ref_c)[:, 0].mean())
             fmove.append(force[a + i, 0])
     cx, cy, fs = map(np.concatenate, (cx, cy, fs))
-    sx, sy, sf = (np.concatenate(v) if v else np.zeros((0, 3) if i == 2 else 0)
-                  for i, v in enumerate((sx, sy, sf)))
+    shrink = (0, float("nan"), float("nan"))       # frames with shrunk dots, corr x, corr y
+    if sf:                                          # every group holds >= 3 frames
+        sx, sy, sf = map(np.concatenate, (sx, sy, sf))
+        shrink = (len(sx), _corr(sx, sf[:, 0]), _corr(sy, sf[:, 1]))
     move, fmove = np.array(move), np.array(fmove)
     return {"frames": len(cx),
             "corr_x": _corr(cx, fs[:, 0]),
             "corr_y": _corr(cy, fs[:, 1]),
-            "shrink_frames": len(sx),
-            "shrink_x": _corr(sx, sf[:, 0]) if len(sx) > 2 else float("nan"),
-            "shrink_y": _corr(sy, sf[:, 1]) if len(sy) > 2 else float("nan"),
+            "shrink_frames": shrink[0], "shrink_x": shrink[1], "shrink_y": shrink[2],
             "dot_move_px_per_N": float(np.polyfit(fmove, move, 1)[0]),
             "dot_move_std_px": float(move.std())}
 
