@@ -81,7 +81,8 @@ def _distinct_references(skins: Sequence[str], refs: np.ndarray, title: str) -> 
 
 
 def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_size, lr, seed,
-           change_weight, change_share, title, target_balance=0.0, change_per_example=0.0):
+           change_weight, change_share, title, target_balance=0.0, change_per_example=0.0,
+           identity_share=0.0):
     from stages.m2m.model import Translator, state_arrays
     from stages.m2m.train import PairBatches, fit, target_probabilities
     frames, rows = paired_table(markers, skins, train_indenters, per_skin)
@@ -91,7 +92,8 @@ def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_
     share = target_probabilities([attrs_of(markers[s]).get("look", s) for s in skins], float(target_balance))
     with torch_threads():
         # balance 0 keeps PairBatches' even draw (and its random stream)
-        batches = PairBatches(images, refs, seed, share if float(target_balance) > 0 else None)
+        batches = PairBatches(images, refs, seed, share if float(target_balance) > 0 else None,
+                              identity_share=float(identity_share))
         hist = fit(net, config, batches, steps=int(steps),
                    batch_size=int(batch_size), lr=float(lr), seed=int(seed),
                    change_weight=float(change_weight), change_share=float(change_share),
@@ -109,6 +111,7 @@ def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_
                   "pairs": int(len(frames)), "steps": int(steps), "batch_size": int(batch_size),
                   "lr": float(lr), "seed": int(seed), "change_weight": float(change_weight),
                   "change_share": float(change_share), "target_balance": float(target_balance),
+                  "identity_share": float(identity_share),
                   "target_share": {s: round(float(v), 4) for s, v in zip(skins, share)},
                   "final_loss": float(np.mean(tail)) if len(tail) else float("nan"),
                   "parameters": int(sum(v.size for v in weights.values()))},
@@ -118,25 +121,27 @@ def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_
 
 def pretrain(*, markers: Mapping, skins: list[str], train_indenters: list[str], size, steps: int,
              batch_size: int, lr: float, seed: int, width: int, timesteps: int,
-             change_weight: float = 0.0, change_share: float = 0.0, source_gate: bool = True) -> dict:
+             change_weight: float = 0.0, change_share: float = 0.0, source_gate: bool = True,
+             identity_share: float = 0.0) -> dict:
     """Node m2m_sim: the generator trained from scratch on every ordered pair of `skins`
     (location-paired frames of the training indenters).  Returns weights (name -> array),
     the per-step loss, figures loss/samples and attrs (config to rebuild the model, ...).
     source_gate: the logits' base adds the source's edit where the references coincide
-    (model.M2MNet.base); the fine-tune keeps the pretrained model's config."""
+    (model.M2MNet.base); the fine-tune keeps the pretrained model's config.  identity_share:
+    that share of the examples is a skin into itself (train.PairBatches)."""
     import torch
     from stages.m2m.model import build, default_config
     config = default_config(size=size, width=width, timesteps=timesteps, source_gate=source_gate)
     torch.manual_seed(int(seed))
     net = build(config)
     return _train(net, config, markers, skins, train_indenters, 0, steps, batch_size, lr, seed,
-                  change_weight, change_share, "m2m pretrain")
+                  change_weight, change_share, "m2m pretrain", identity_share=identity_share)
 
 
 def finetune(*, base, markers: Mapping, skins: list[str], train_indenters: list[str],
              pairs_per_skin: int, steps: int, batch_size: int, lr: float, seed: int,
              change_weight: float = 0.0, change_share: float = 0.0, target_balance: float = 0.0,
-             change_per_example: float = 0.0) -> dict:
+             change_per_example: float = 0.0, identity_share: float = 0.0) -> dict:
     """Node m2m: `base` (a pretrained model) fine-tuned on `pairs_per_skin` location-paired
     frames shared by `skins`, evenly spread over the training indenters' frames.  Targets are
     drawn by train.target_probabilities over the skins' looks (the markers' `look` attribute)
@@ -146,7 +151,7 @@ def finetune(*, base, markers: Mapping, skins: list[str], train_indenters: list[
     net = build(config, weights_of(base))
     out = _train(net, config, markers, skins, train_indenters, int(pairs_per_skin), steps, batch_size,
                  lr, seed, change_weight, change_share, "m2m finetune", target_balance,
-                 change_per_example)
+                 change_per_example, identity_share)
     out["attrs"]["base_skins"] = list(attrs_of(base).get("skins", []))
     out["attrs"]["pairs_per_skin"] = int(pairs_per_skin)
     return out
@@ -206,42 +211,80 @@ def _stream(source, target, eval_indenters, n_eval, convert, method: str):
     return result
 
 
-def _in_target_space(convert, target_markers, target: str, redraw_taxels: Sequence[str]):
+def _in_target_space(convert, target_markers, target: str, redraw_taxels: Sequence[str],
+                     gain_of=None):
     """`convert`, followed for a target skin named in `redraw_taxels` by uskin.redraw: the
-    output read as the taxel skin's 16 dots and drawn again as the skin draws them.  Returns
-    (convert, whether it redraws)."""
+    output read as the taxel skin's 16 dots and drawn again as the skin draws them, their
+    offsets and area changes times `gain_of(convert, settings)` (x, y, area) when given.
+    Returns (convert, the gain: None where it does not redraw)."""
     if target not in set(redraw_taxels or ()):
-        return convert, False
+        return convert, None
     attrs = attrs_of(target_markers)
     if attrs.get("look") != "taxel":
         raise ValueError(f"m2m.redraw_taxels names {target!r}, whose markers are not taxel dots "
                          f"(look {attrs.get('look')!r})")
     from stages.markers.uskin import redraw
     settings = attrs.get("settings", {})
-    return (lambda images: redraw(convert(images), settings)), True
+    gain = (1.0, 1.0, 1.0) if gain_of is None else tuple(gain_of(convert, settings))
+    return (lambda images: redraw(convert(images), settings, gain=gain)), gain
+
+
+MATCH_GAIN_RANGE = (0.25, 4.0)
+
+
+def matched_gain(convert, source_markers, target_markers, indenters: Sequence[str], pairs: int,
+                 settings: Mapping) -> tuple[float, float, float]:
+    """(x, y, area) gains that give translations into a taxel skin the spread of the skin's own
+    dots: the RMS of the target's dot offsets (and area changes) over the RMS of the
+    translations' on `pairs` location-paired frames of `indenters` (the frames the model was
+    fine-tuned on: images only, no labels), each clipped to MATCH_GAIN_RANGE.  A translator
+    that draws the dots' motion at half its size gets gain 2."""
+    from stages.markers.uskin import dot_changes
+    _, rows = paired_table({"s": source_markers, "t": target_markers}, ["s", "t"], indenters, int(pairs))
+
+    def images(markers, r):                 # markers["images"][r], r in any order
+        unique, inverse = np.unique(r, return_inverse=True)
+        return read_rows(markers["images"], unique)[inverse]
+
+    fake_off, fake_area = dot_changes(convert(images(source_markers, rows[0])), settings)
+    real_off, real_area = dot_changes(images(target_markers, rows[1]), settings)
+    rms = lambda x: float(np.sqrt(np.mean(np.square(x))))
+    gains = [rms(r) / max(rms(f), 1e-9) if rms(r) > 0 else 1.0
+             for r, f in [(real_off[..., 0], fake_off[..., 0]), (real_off[..., 1], fake_off[..., 1]),
+                          (real_area, fake_area)]]
+    return tuple(round(float(np.clip(g, *MATCH_GAIN_RANGE)), 4) for g in gains)
 
 
 def translate_sequence(*, model, source_markers, target_markers, eval_indenters: list[str], n_eval: int,
-                       sampler_steps: int = 1, redraw_taxels: Sequence[str] = (), source: str = "",
-                       target: str = ""):
+                       sampler_steps: int = 1, redraw_taxels: Sequence[str] = (), redraw_match: bool = False,
+                       source: str = "", target: str = ""):
     """Nodes translate_sim[source,target] / translate[source,target]: the source sequence
     (source_markers, a marker artifact) translated into the target's marker style by the M2M
     model (chunks: images + the source labels); returns the target's reference, `features`
     and `eval_frames` of the evaluation frames, figures/examples and attrs.  redraw_taxels:
     the taxel skins whose translations are redrawn as their dots (_in_target_space; attrs
-    redraw_taxels true where done).  source, target: the skins' names (the fan-out's values)."""
+    redraw_taxels true where done); redraw_match: their dots' motion and area change scaled by
+    matched_gain on the model's fine-tuning frames (attrs redraw_gain).  source, target: the
+    skins' names (the fan-out's values)."""
     from stages.m2m.model import load_translator
     translator = load_translator(model)
     src_ref = np.asarray(source_markers["reference"], np.uint8)
     tgt_ref = np.asarray(target_markers["reference"], np.uint8)
-    convert, redrawn = _in_target_space(
-        lambda im: translator.translate(im, src_ref, tgt_ref, int(sampler_steps)), target_markers, target,
-        redraw_taxels)
+    trained = attrs_of(model)
+    gain_of = None
+    if redraw_match:
+        gain_of = lambda convert, settings: matched_gain(
+            convert, source_markers, target_markers, trained["train_indenters"],
+            int(trained.get("pairs_per_skin", 0)), settings)
     with torch_threads():
+        convert, gain = _in_target_space(
+            lambda im: translator.translate(im, src_ref, tgt_ref, int(sampler_steps)), target_markers,
+            target, redraw_taxels, gain_of)
         result = yield from _stream(source_markers, target_markers, eval_indenters, n_eval, convert, "m2m")
     result["attrs"].update(sampler_steps=int(sampler_steps), source=source, target=target)
-    if redrawn:
+    if gain is not None:
         result["attrs"]["redraw_taxels"] = True
+        result["attrs"]["redraw_gain"] = [float(g) for g in gain]
     return result
 
 
@@ -252,11 +295,11 @@ def flow_warp_sequence(*, source_markers, target_markers, eval_indenters: list[s
     from stages.m2m.flow import MarkerFlow, warp
     flow = MarkerFlow(np.asarray(source_markers["reference"], np.uint8))
     tgt_ref = np.asarray(target_markers["reference"], np.uint8)
-    convert, redrawn = _in_target_space(lambda ims: np.stack([warp(tgt_ref, flow.field(im)) for im in ims]),
-                                        target_markers, target, redraw_taxels)
+    convert, gain = _in_target_space(lambda ims: np.stack([warp(tgt_ref, flow.field(im)) for im in ims]),
+                                     target_markers, target, redraw_taxels)
     result = yield from _stream(source_markers, target_markers, eval_indenters, n_eval, convert, "flow_warp")
     result["attrs"].update(source=source, target=target)
-    if redrawn:
+    if gain is not None:
         result["attrs"]["redraw_taxels"] = True
     return result
 

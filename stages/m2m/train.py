@@ -65,10 +65,12 @@ def target_probabilities(looks, balance: float) -> np.ndarray:
 class PairBatches:
     """Random (condition, target) batches from paired images (S,K,H,W) and references (S,H,W).
     `target_p` (S,): how often each skin is the target (default: evenly); the source is then
-    any other skin, evenly."""
+    any other skin, evenly.  `identity_share`: that share of the examples translates the target
+    skin into itself (source frame = target frame), so the model sees what a pair of one
+    pattern asks for: the source's deformation, unchanged."""
 
     def __init__(self, images: np.ndarray, references: np.ndarray, seed: int,
-                 target_p: np.ndarray | None = None):
+                 target_p: np.ndarray | None = None, identity_share: float = 0.0):
         if images.ndim != 4 or references.shape != (images.shape[0], *images.shape[2:]):
             raise ValueError(f"images (S,K,H,W) and references (S,H,W) expected, got "
                              f"{images.shape} and {references.shape}")
@@ -76,7 +78,9 @@ class PairBatches:
             target_p = np.asarray(target_p, np.float64)
             if target_p.shape != (images.shape[0],) or (target_p < 0).any() or not np.isclose(target_p.sum(), 1.0):
                 raise ValueError(f"target_p must be {images.shape[0]} probabilities summing to 1, got {target_p}")
-        self.target_p = target_p
+        if not 0 <= identity_share <= 1:
+            raise ValueError(f"identity_share must be in [0, 1], got {identity_share}")
+        self.target_p, self.identity_share = target_p, float(identity_share)
         self.images, self.refs = images, references
         self.rng = np.random.default_rng(seed)
         self.square = images.shape[2] == images.shape[3]
@@ -96,6 +100,8 @@ class PairBatches:
         else:
             b = self.rng.choice(s, batch, p=self.target_p)
             a = (b + self.rng.integers(1, s, batch)) % s if s > 1 else b
+        if self.identity_share > 0:  # drawn only then: share 0 keeps the random stream
+            a = np.where(self.rng.random(batch) < self.identity_share, b, a)
         stack = np.stack([self.images[a, f], self.refs[a], self.refs[b], self.images[b, f]], 1)
         stack = np.stack([self._symmetry(x, int(g)) for x, g in
                           zip(stack, self.rng.integers(0, 8 if self.square else 4, batch))])

@@ -218,12 +218,22 @@ def read_dots(images, *, pad_mm=USKIN_PAD_MM, iterations: int = 3):
     return centres, areas
 
 
-def redraw(images, settings: Mapping, supersample: int = 4) -> np.ndarray:
+def dot_changes(images, settings: Mapping) -> tuple[np.ndarray, np.ndarray]:
+    """The dots of taxel marker images (N, H, W) as redraw reads them, relative to rest:
+    offsets (N, 16, 2) mm from the taxel centres and area changes (N, 16) mm^2 from base_area
+    (settings as redraw's)."""
+    pad = tuple(float(v) for v in settings.get("pad_mm", USKIN_PAD_MM))
+    centres, areas = read_dots(np.asarray(images), pad_mm=pad)
+    return centres - taxel_centres(pad), areas - float(settings.get("base_area", BASE_AREA))
+
+
+def redraw(images, settings: Mapping, supersample: int = 4, gain=(1.0, 1.0, 1.0)) -> np.ndarray:
     """Images (N, H, W) 0/255 read as a taxel skin's dots (read_dots) and drawn again as
     signal_to_marker draws that skin.  settings: the skin's signal_to_marker keywords (a taxel
     markers artifact's attrs["settings"]); pad_mm, base_area, min_area, max_area, max_offset
     and z_only are used (defaults as signal_to_marker's), s_xy and s_z scale signals and do not
-    matter here.  Areas are clipped to min_area..max_area, offsets to max_offset grid units,
+    matter here.  gain (x, y, area): the read offsets and area changes (dot_changes) are
+    multiplied by it before drawing (1: as read).  Areas are clipped to min_area..max_area, offsets to max_offset grid units,
     and a z-only skin's dots stay at their taxel centres.  An image of the skin redraws as itself up to the
     dots' rasterised edges; a translation into the skin becomes an image the skin can show
     (z-only dots cannot move)."""
@@ -239,11 +249,14 @@ def redraw(images, settings: Mapping, supersample: int = 4) -> np.ndarray:
     max_area = float(settings.get("max_area", 16.0))
     max_offset = float(settings.get("max_offset", 0.8))
     z_only = bool(settings.get("z_only", False))
-    centres, areas = read_dots(ims, pad_mm=pad)
+    g = np.asarray(gain, float)
+    if g.shape != (3,) or not np.isfinite(g).all() or (g <= 0).any():
+        raise ValueError(f"redraw: gain must be 3 positive numbers (x, y, area), got {gain!r}")
+    offsets, changes = dot_changes(ims, {**settings, "pad_mm": pad, "base_area": base_area})
     pitch = np.array([pad[0] / TAXELS[1], pad[1] / TAXELS[0]])
-    grid = taxel_centres(pad)
     limit = 0.0 if z_only else max_offset
-    centres = grid + np.clip(centres - grid, -limit * pitch, limit * pitch)
+    centres = taxel_centres(pad) + np.clip(offsets * g[:2], -limit * pitch, limit * pitch)
+    areas = base_area + changes * g[2]
     return _draw(centres, np.clip(areas, min_area, max_area), size=ims.shape[1:], pad_mm=pad,
                  supersample=supersample)
 

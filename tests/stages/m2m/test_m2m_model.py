@@ -278,3 +278,27 @@ def test_source_gate_starts_shared_patterns_from_the_source_image():
     np.testing.assert_array_equal(plain.translate(moved, ref, ref), ref[None])
     with pytest.raises(KeyError, match="do not fit"):
         build(old, weights)
+
+
+def test_identity_share_translates_that_share_of_the_examples_into_their_own_skin():
+    """Three skins with distinct images: an example is an identity pair exactly when its input
+    image is its target.  Share 0 keeps the draws of the plain batches bit for bit."""
+    imgs = _images(12, size=16).reshape(3, 4, 16, 16)
+    refs = _images(3, size=16, seed=3)
+    plain = PairBatches(imgs, refs, seed=0)(32)
+    zero = PairBatches(imgs, refs, seed=0, identity_share=0.0)(32)
+    for a, b in zip(plain, zero):
+        np.testing.assert_array_equal(a.numpy(), b.numpy())
+    assert not bool(((plain[0][:, :1] > 0) == (plain[1] > 0.5)).all((1, 2, 3)).any())
+
+    def identity_rate(share, n=4000):
+        cond, target, _ = PairBatches(imgs, refs, seed=1, identity_share=share)(n)
+        same = ((cond[:, :1] > 0) == (target > 0.5)).all((1, 2, 3))
+        # an identity example conditions on one reference twice
+        np.testing.assert_array_equal(same.numpy(), (cond[:, 1] == cond[:, 2]).all((1, 2)).numpy())
+        return float(same.float().mean())
+
+    assert identity_rate(1.0) == 1.0
+    assert identity_rate(0.25) == pytest.approx(0.25, abs=0.025)
+    with pytest.raises(ValueError, match=r"identity_share must be in \[0, 1\], got 1.5"):
+        PairBatches(imgs, refs, seed=0, identity_share=1.5)

@@ -154,3 +154,55 @@ def test_translations_into_a_listed_taxel_skin_are_redrawn_as_its_dots(skins, mo
         run_node(nodes.flow_warp_sequence(source_markers=src, target_markers=skins["Array3"],
                                           eval_indenters=["wave"], n_eval=4, target="Array3",
                                           redraw_taxels=["Array3"]))
+
+
+def _taxel_skin(like, seed=0):
+    """A 3-axis taxel skin on `like`'s frames at its size: dots moved and grown at random."""
+    from stages.markers.uskin import MID_SCALE, signal_to_marker
+    size = like["images"].shape[1:]
+    settings = {"size": list(size), "pad_mm": [24.6, 22.6], "z_only": False, "base_area": 4.0,
+                "max_area": 16.0, "max_offset": 0.8}
+    base = np.full((16, 3), MID_SCALE)
+    rng = np.random.default_rng(seed)
+    n = len(like["images"])
+    raw = base + np.concatenate([rng.normal(0, 2000, (n, 16, 2)), rng.uniform(0, 600, (n, 16, 1))], -1)
+    kw = dict(s_xy=20000.0, s_z=150.0, **{k: v for k, v in settings.items() if k != "size"})
+    return {**like, "images": signal_to_marker(raw, base, size=size, **kw),
+            "reference": signal_to_marker(base, base, size=size, **kw),
+            "attrs": {"look": "taxel", "settings": settings}}, settings
+
+
+def test_matched_gain_restores_the_spread_of_a_timid_translators_dots(skins):
+    """A 'translator' that draws the skin's own dots at half their motion and area change gets
+    gains ~2 on its paired training frames; one that copies gets 1; one that barely moves them
+    is capped at the range's top."""
+    from stages.markers.uskin import redraw
+    tgt, settings = _taxel_skin(skins["Circle3"])
+    gain = lambda convert, pairs=0: nodes.matched_gain(convert, tgt, tgt, ["sphere"], pairs, settings)
+    assert gain(lambda ims: ims) == pytest.approx((1.0, 1.0, 1.0), rel=0.03)
+    assert gain(lambda ims: redraw(ims, settings, gain=(0.5, 0.5, 0.5))) == pytest.approx((2.0, 2.0, 2.0), rel=0.1)
+    assert gain(lambda ims: redraw(ims, settings, gain=(0.5, 1.0, 1.0)), pairs=8) == pytest.approx((2.0, 1.0, 1.0), rel=0.1)
+    assert gain(lambda ims: redraw(ims, settings, gain=(0.01, 1.0, 1.0)))[0] == nodes.MATCH_GAIN_RANGE[1]
+
+
+def test_translate_redraw_match_draws_with_the_matched_gain(skins, trained, monkeypatch):
+    """translate with redraw_match into a listed taxel skin: attrs carry the gain, which is
+    matched_gain on the model's training indenters, and the images are the plain
+    translation redrawn with it."""
+    from stages.m2m.model import load_translator
+    from stages.markers.uskin import redraw
+    monkeypatch.setattr("stages.imagemetrics.inception_features",
+                        lambda images, **kw: np.zeros((len(images), 4)))
+    src = skins["Circle3"]
+    tgt, settings = _taxel_skin(src, seed=1)
+    run = dict(model=trained, source_markers=src, target_markers=tgt, eval_indenters=["wave"], n_eval=4,
+               target="uskin-3axis", redraw_taxels=["uskin-3axis"])
+    chunks, out = run_node(nodes.translate_sequence(**run, redraw_match=True))
+    g = tuple(out["attrs"]["redraw_gain"])
+    translator = load_translator(trained)
+    plain = lambda ims: translator.translate(ims, src["reference"], tgt["reference"], 1)
+    assert g == nodes.matched_gain(plain, src, tgt, ["sphere"], 0, settings) and g != (1.0, 1.0, 1.0)
+    np.testing.assert_array_equal(np.concatenate([c["images"] for c in chunks]),
+                                  redraw(plain(src["images"]), settings, gain=g))
+    _, unmatched = run_node(nodes.translate_sequence(**run))
+    assert unmatched["attrs"]["redraw_gain"] == [1.0, 1.0, 1.0]

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from stages.markers.patterns import USKIN_PAD_MM, rasterize, uskin_pattern
-from stages.markers.uskin import (BASE_AREA, GAINS, MID_SCALE, _dots, parse_xela, read_dots, redraw,
+from stages.markers.uskin import (BASE_AREA, GAINS, MID_SCALE, _dots, dot_changes, parse_xela, read_dots, redraw,
                                   signal_to_marker, taxel_centres, taxel_sequence, taxel_signals,
                                   taxel_weights)
 from tests.helpers import drain
@@ -206,6 +206,25 @@ def test_redraw_puts_z_only_dots_back_at_their_taxels():
     assert _dot(three, 6, near=(6, 0))[0] - 80 == pytest.approx(6.4, abs=0.3)
     with pytest.raises(ValueError, match=r"redraw: images are \(128, 128\), the skin draws \(64, 64\)"):
         redraw(moved[None], {**kw, "size": [64, 64]})
+
+
+def test_redraw_gain_scales_the_dots_motion_and_area_change():
+    """gain (x, y, area) multiplies what redraw reads before it draws: dots read back at twice
+    their x offset, half their y offset and 1.5 times their area change; gain 1 is redraw."""
+    kw = dict(size=SIZE, s_xy=20000.0, s_z=150.0, base_area=BASE_AREA, max_area=16.0, max_offset=0.8)
+    rng = np.random.default_rng(3)                          # 0.075 grid units per axis, up to
+    raw = BASE + np.concatenate([rng.normal(0, 1500, (24, 16, 2)),   # 4 mm^2 more area: no clip
+                                 rng.uniform(0, 600, (24, 16, 1))], -1)
+    images = signal_to_marker(raw, BASE, **kw)
+    off, change = dot_changes(images, kw)
+    assert np.abs(off).mean() > 0.1 and np.abs(change).mean() > 1.0     # mm, mm^2
+    np.testing.assert_array_equal(redraw(images, kw, gain=(1, 1, 1)), redraw(images, kw))
+    got_off, got_change = dot_changes(redraw(images, kw, gain=(2.0, 0.5, 1.5)), kw)
+    for k, g in ((0, 2.0), (1, 0.5)):
+        assert np.polyfit(off[..., k].ravel(), got_off[..., k].ravel(), 1)[0] == pytest.approx(g, rel=0.05)
+    assert np.polyfit(change.ravel(), got_change.ravel(), 1)[0] == pytest.approx(1.5, rel=0.05)
+    with pytest.raises(ValueError, match=r"redraw: gain must be 3 positive numbers \(x, y, area\), got \(1, 0, 1\)"):
+        redraw(images, kw, gain=(1, 0, 1))
 
 
 def test_reference_is_the_uskin_pattern_and_batches_work():
