@@ -167,7 +167,14 @@ GRAPH.node("homo", "stages.studies:transfer_study", inputs=_STUDY,
 GRAPH.node("material", "stages.studies:transfer_study", inputs=_STUDY,
            params={**_STUDY_PARAMS, "study": "material.study", "groups": "material.groups"},
            description="study material (paper Fig. 5): seven elastomers, with and without compensation")
-GRAPH.node("hetero", "stages.studies:transfer_study", inputs=_STUDY,
+GRAPH.node("hetero_seed", "stages.force.nodes:fit_transfer_seed",
+           inputs={"transfer": "transfer[source={source},target={target}]",
+                   "translated": "translate[source={source},target={target}]"},
+           params={k: v for k, v in _FIT.items() if k != "seed"} | {
+               "finetune_steps": "force.finetune_steps", "train_indenters": "splits.train_indenters"},
+           grid={"source,target": "hetero.groups.pairs", "seed": "hetero.seeds"},
+           description="a hetero pair's genforce_comp trained again from other seeds (its spread)")
+GRAPH.node("hetero", "stages.studies:transfer_study", inputs={**_STUDY, "seeds": "hetero_seed[*]"},
            params={**_STUDY_PARAMS, "study": "hetero.study", "groups": "hetero.groups"},
            description="study hetero (paper Fig. 6): GelSight, TacTip, uSkin 3-axis and z-only")
 

@@ -29,6 +29,9 @@ METHODS = ("source_only", "genforce", "genforce_comp", "oracle")
 # its training labels, scored against the target's labels on the location-paired test frames
 # (what genforce_comp would score if it reproduced its labels exactly: the compensation's own error)
 LABELS = "labels_comp"
+# genforce_comp over several regressor seeds (transfer's and seed[...]'s): the mean of each
+# metric, and its standard deviation as sd_<metric>
+SEEDS = "genforce_comp_seeds"
 _COLOURS = {"source_only": "C3", "genforce": "C0", "genforce_comp": "C2", "oracle": "0.45"}
 
 
@@ -192,12 +195,13 @@ DEPTH_MODES = ("shared", "paired")
 def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, config: Mapping,
                       steps: int, batch_size: int, lr: float, finetune_steps: int,
                       train_indenters: Sequence[str] | None = None, model_pair=None) -> dict:
-    """Node `transfer_seed[seed]`: `transfer`'s genforce_comp model trained again from another
-    seed: the same translated contacts of `train_indenters`, the same labels (compensated with
-    the curves, mode and depth ratio stored in `transfer`'s attrs) and the same two-stage
-    schedule.  Models of several seeds differ only by chance; their mean is a steadier force
-    reading than any one of them (the control study's ensemble; model_pair: transfer's
-    (source, target), which the graph's templates read).  Returns genforce_comp
+    """Nodes `transfer_seed[seed]` and `hetero_seed[source,target,seed]`: `transfer`'s
+    genforce_comp model trained again from another seed: the same translated contacts of
+    `train_indenters`, the same labels (compensated with the curves, mode and depth ratio
+    stored in `transfer`'s attrs) and the same two-stage schedule.  Models of several seeds
+    differ only by chance: their mean is a steadier force reading than any one of them (the
+    control study's ensemble; model_pair: transfer's (source, target), which the graph's
+    templates read), and their spread is the chance in a study's figure (hetero).  Returns genforce_comp
     weights and attrs {config, source, target, seed, history}."""
     from stages.force.compensation import Curves, compensate, loading_mask
     from stages.force.model import to_arrays
@@ -279,7 +283,8 @@ def compensated_test_labels(source_art, transfer_art, test_indenters, target_fra
 
 def force_study(*, study: str, pairs: Sequence[Sequence[str]], own: Mapping[str, Mapping],
                 transfer: Mapping[str, Mapping], markers: Mapping[str, Mapping],
-                test_indenters: Sequence[str], trace_frames: int = 1000) -> dict:
+                test_indenters: Sequence[str], trace_frames: int = 1000,
+                seeds: Mapping[str, Mapping] | None = None) -> dict:
     """Node `homo` / `material` / `hetero` (force part): four methods per source -> target pair,
     all scored on the target's test contacts (`test_indenters`) against the target's labels:
 
@@ -291,16 +296,30 @@ def force_study(*, study: str, pairs: Sequence[Sequence[str]], own: Mapping[str,
     Every model sees the target's images with the target's reference.  Metrics
     `<study>/<source>_<target>/<method>/<metric>` and `<study>/mean/<method>/<metric>`, plus
     the diagnostic method `labels_comp` (LABELS: compensated_test_labels scored the same way)
-    where the source's test frames are location-paired with the target's;
-    arrays mae/<method> (pairs, 4: fx, fy, fz, total), r2/<method> (pairs, 3), pairs
+    where the source's test frames are location-paired with the target's, and, for the pairs
+    that `seeds` (fit_transfer_seed artifacts keyed "source=..,target=..,seed=..") has models
+    of, the method SEEDS: genforce_comp's metrics averaged over transfer's model and those,
+    with sd_<metric> their standard deviation (mean over pairs in `<study>/mean/` when every
+    pair has them); arrays mae/<method> (pairs, 4: fx, fy, fz, total), r2/<method> (pairs, 3), pairs
     ("source_target"), sources, targets, trace/*; figures radar (MAE), r2_hist, trace, violin.
     """
     from stages.common import torch_threads
     with torch_threads():
-        return _force_study(study, pairs, own, transfer, markers, test_indenters, trace_frames)
+        return _force_study(study, pairs, own, transfer, markers, test_indenters, trace_frames,
+                            seeds or {})
 
 
-def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_frames) -> dict:
+def _seed_models(seeds: Mapping[str, Mapping], source: str, target: str) -> list[Mapping]:
+    """The artifacts of `seeds` trained for source -> target, in seed order."""
+    found = []
+    for key, art in seeds.items():
+        fields = dict(part.split("=", 1) for part in key.split(","))
+        if fields.get("source") == source and fields.get("target") == target:
+            found.append((int(fields.get("seed", attrs_of(art).get("seed", 0))), art))
+    return [art for _, art in sorted(found, key=lambda x: x[0])]
+
+
+def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_frames, seeds) -> dict:
     from stages.force.metrics import METRICS, force_metrics
     from stages.force.model import load_model, predict_contacts
     pairs = [(str(s), str(t)) for s, t in pairs]
@@ -333,6 +352,14 @@ def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_fra
         for m in METHODS:
             for k, v in scores[m].items():
                 metrics[f"{study}/{s}_{t}/{m}/{k}"] = v
+        members = _seed_models(seeds, s, t)
+        if members:
+            runs = [scores["genforce_comp"]] + [force_metrics(predict(m, "genforce_comp"), test["force"])
+                                                for m in members]
+            for k in runs[0]:
+                values = [r[k] for r in runs]
+                metrics[f"{study}/{s}_{t}/{SEEDS}/{k}"] = float(np.mean(values))
+                metrics[f"{study}/{s}_{t}/{SEEDS}/sd_{k}"] = float(np.std(values, ddof=1))
         labels = (compensated_test_labels(markers[s], tr, test_indenters, test["frame"])
                   if s in markers else None)
         if labels is not None:
@@ -343,11 +370,12 @@ def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_fra
     for m in METHODS:
         for k in METRICS:
             metrics[f"{study}/mean/{m}/{k}"] = float(np.mean([p["scores"][m][k] for p in per_pair]))
-    for k in METRICS:
-        have = [metrics[f"{study}/{s}_{t}/{LABELS}/{k}"] for s, t in pairs
-                if f"{study}/{s}_{t}/{LABELS}/{k}" in metrics]
-        if len(have) == len(pairs):
-            metrics[f"{study}/mean/{LABELS}/{k}"] = float(np.mean(have))
+    for method, names in ((LABELS, METRICS), (SEEDS, [*METRICS, *(f"sd_{k}" for k in METRICS)])):
+        for k in names:
+            have = [metrics[f"{study}/{s}_{t}/{method}/{k}"] for s, t in pairs
+                    if f"{study}/{s}_{t}/{method}/{k}" in metrics]
+            if len(have) == len(pairs):
+                metrics[f"{study}/mean/{method}/{k}"] = float(np.mean(have))
 
     mae = {m: np.array([[p["scores"][m][k] for k in ("mae_fx", "mae_fy", "mae_fz", "mae_total")]
                         for p in per_pair]) for m in METHODS}

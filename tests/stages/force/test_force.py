@@ -453,3 +453,26 @@ def test_force_study_metrics_and_figures(nodes_out, skins):
     with pytest.raises(KeyError, match="source=A,target=C"):
         force_study(study="toy", pairs=[["A", "C"]], own={**own, "C": own["A"]}, transfer={},
                     markers={**skins, "C": skins["A"]}, test_indenters=["torus"])
+
+
+def test_force_study_seeds_average_genforce_comp_over_the_seed_models(nodes_out, skins):
+    """A pair with seed models gets genforce_comp_seeds: each metric's mean and sd over
+    transfer's genforce_comp and the seeds' (here seed 1 = another model, seed 2 = the same);
+    a pair without them gets none, nor does the study's mean."""
+    own, same, stiffer = nodes_out
+    seeds = {"source=A,target=B,seed=2": same, "source=A,target=B,seed=1": stiffer}
+    m = force_study(study="toy", pairs=[["A", "B"], ["B", "A"]], own=own,
+                    transfer={"source=A,target=B": same, "source=B,target=A": stiffer},
+                    markers=skins, test_indenters=["torus"], trace_frames=20, seeds=seeds)["metrics"]
+    rows = np.flatnonzero(np.isin(skins["B"]["contact_id"], [3, 7, 11]))     # the torus contacts
+    other = force_metrics(predict_contacts(load_model(stiffer, "genforce_comp"), skins["B"]["images"][rows],
+                                           skins["B"]["contact_id"][rows], skins["B"]["reference"]),
+                          skins["B"]["force"][rows])
+    base = m["toy/A_B/genforce_comp/mae_total"]
+    assert other["mae_total"] != pytest.approx(base)
+    assert m["toy/A_B/genforce_comp_seeds/mae_total"] == pytest.approx((2 * base + other["mae_total"]) / 3)
+    assert m["toy/A_B/genforce_comp_seeds/sd_mae_total"] == pytest.approx(
+        np.std([base, other["mae_total"], base], ddof=1))
+    assert m["toy/A_B/genforce_comp_seeds/r2_fz"] == pytest.approx(
+        (2 * m["toy/A_B/genforce_comp/r2_fz"] + other["r2_fz"]) / 3)
+    assert not any("/B_A/genforce_comp_seeds/" in k or "/mean/genforce_comp_seeds/" in k for k in m)
