@@ -194,14 +194,16 @@ DEPTH_MODES = ("shared", "paired")
 
 def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, config: Mapping,
                       steps: int, batch_size: int, lr: float, finetune_steps: int,
-                      train_indenters: Sequence[str] | None = None, model_pair=None) -> dict:
+                      train_indenters: Sequence[str] | None = None, model_pair=None,
+                      source: str = "", target: str = "") -> dict:
     """Nodes `transfer_seed[seed]` and `hetero_seed[source,target,seed]`: `transfer`'s
     genforce_comp model trained again from another seed: the same translated contacts of
     `train_indenters`, the same labels (compensated with the curves, mode and depth ratio
     stored in `transfer`'s attrs) and the same two-stage schedule.  Models of several seeds
     differ only by chance: their mean is a steadier force reading than any one of them (the
     control study's ensemble; model_pair: transfer's (source, target), which the graph's
-    templates read), and their spread is the chance in a study's figure (hetero).  Returns genforce_comp
+    templates read), and their spread is the chance in a study's figure (hetero; source,
+    target: the fan-out's values, which transfer's attrs hold too).  Returns genforce_comp
     weights and attrs {config, source, target, seed, history}."""
     from stages.force.compensation import Curves, compensate, loading_mask
     from stages.force.model import to_arrays
