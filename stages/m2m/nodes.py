@@ -214,9 +214,9 @@ def _stream(source, target, eval_indenters, n_eval, convert, method: str):
 def _in_target_space(convert, target_markers, target: str, redraw_taxels: Sequence[str],
                      gain_of=None):
     """`convert`, followed for a target skin named in `redraw_taxels` by uskin.redraw: the
-    output read as the taxel skin's 16 dots and drawn again as the skin draws them, their
-    offsets and area changes times `gain_of(convert, settings)` (x, y, area) when given.
-    Returns (convert, the gain: None where it does not redraw)."""
+    output read as the taxel skin's 16 dots and drawn again as the skin draws them, with
+    redraw's gain keywords `gain_of(convert, settings)` (gain, shift_gain) when given.
+    Returns (convert, the keywords: None where it does not redraw)."""
     if target not in set(redraw_taxels or ()):
         return convert, None
     attrs = attrs_of(target_markers)
@@ -225,20 +225,19 @@ def _in_target_space(convert, target_markers, target: str, redraw_taxels: Sequen
                          f"(look {attrs.get('look')!r})")
     from stages.markers.uskin import redraw
     settings = attrs.get("settings", {})
-    gain = (1.0, 1.0, 1.0) if gain_of is None else tuple(gain_of(convert, settings))
-    return (lambda images: redraw(convert(images), settings, gain=gain)), gain
+    gains = {"gain": (1.0, 1.0, 1.0)} if gain_of is None else dict(gain_of(convert, settings))
+    return (lambda images: redraw(convert(images), settings, **gains)), gains
 
 
 MATCH_GAIN_RANGE = (0.25, 4.0)
+REDRAW_MATCH = ("none", "spread", "shift")
 
 
-def matched_gain(convert, source_markers, target_markers, indenters: Sequence[str], pairs: int,
-                 settings: Mapping) -> tuple[float, float, float]:
-    """(x, y, area) gains that give translations into a taxel skin the spread of the skin's own
-    dots: the RMS of the target's dot offsets (and area changes) over the RMS of the
-    translations' on `pairs` location-paired frames of `indenters` (the frames the model was
-    fine-tuned on: images only, no labels), each clipped to MATCH_GAIN_RANGE.  A translator
-    that draws the dots' motion at half its size gets gain 2."""
+def _paired_dot_changes(convert, source_markers, target_markers, indenters: Sequence[str], pairs: int,
+                        settings: Mapping):
+    """uskin.dot_changes of the translations and of the target's own images on `pairs`
+    location-paired frames of `indenters`: (fake offsets, fake area changes, real offsets,
+    real area changes)."""
     from stages.markers.uskin import dot_changes
     _, rows = paired_table({"s": source_markers, "t": target_markers}, ["s", "t"], indenters, int(pairs))
 
@@ -248,34 +247,72 @@ def matched_gain(convert, source_markers, target_markers, indenters: Sequence[st
 
     fake_off, fake_area = dot_changes(convert(images(source_markers, rows[0])), settings)
     real_off, real_area = dot_changes(images(target_markers, rows[1]), settings)
-    rms = lambda x: float(np.sqrt(np.mean(np.square(x))))
-    gains = [rms(r) / max(rms(f), 1e-9) if rms(r) > 0 else 1.0
-             for r, f in [(real_off[..., 0], fake_off[..., 0]), (real_off[..., 1], fake_off[..., 1]),
-                          (real_area, fake_area)]]
+    return fake_off, fake_area, real_off, real_area
+
+
+def _clip_gains(gains) -> tuple[float, ...]:
     return tuple(round(float(np.clip(g, *MATCH_GAIN_RANGE)), 4) for g in gains)
 
 
+def matched_gain(convert, source_markers, target_markers, indenters: Sequence[str], pairs: int,
+                 settings: Mapping) -> tuple[float, float, float]:
+    """(x, y, area) gains that give translations into a taxel skin the spread of the skin's own
+    dots: the RMS of the target's dot offsets (and area changes) over the RMS of the
+    translations' on `pairs` location-paired frames of `indenters` (the frames the model was
+    fine-tuned on: images only, no labels), each clipped to MATCH_GAIN_RANGE.  A translator
+    that draws the dots' motion at half its size gets gain 2."""
+    fake_off, fake_area, real_off, real_area = _paired_dot_changes(
+        convert, source_markers, target_markers, indenters, pairs, settings)
+    rms = lambda x: float(np.sqrt(np.mean(np.square(x))))
+    return _clip_gains(rms(r) / max(rms(f), 1e-9) if rms(r) > 0 else 1.0
+                       for r, f in [(real_off[..., 0], fake_off[..., 0]),
+                                    (real_off[..., 1], fake_off[..., 1]), (real_area, fake_area)])
+
+
+def matched_shift_gain(convert, source_markers, target_markers, indenters: Sequence[str], pairs: int,
+                       settings: Mapping) -> tuple[float, float]:
+    """(x, y) gains for the dots' common shift (their mean offset in a frame, what a shear
+    moves): the least-squares slope, through 0, of the target's common shift on the
+    translations' over the paired frames of matched_gain, each clipped to MATCH_GAIN_RANGE.
+    The rest of the dots' motion and their areas keep their drawn size."""
+    fake_off, _, real_off, _ = _paired_dot_changes(
+        convert, source_markers, target_markers, indenters, pairs, settings)
+    fake, real = fake_off.mean(1), real_off.mean(1)
+    return _clip_gains(float((real[:, k] * fake[:, k]).sum() / (fake[:, k] ** 2).sum())
+                       if (fake[:, k] ** 2).sum() > 1e-12 else 1.0 for k in (0, 1))
+
+
+def _redraw_gains(mode: str, convert, settings: Mapping, **paired) -> dict:
+    """uskin.redraw's gain keywords for m2m.redraw_match `mode` (REDRAW_MATCH)."""
+    if mode == "spread":
+        return {"gain": matched_gain(convert, settings=settings, **paired)}
+    return {"gain": (1.0, 1.0, 1.0), "shift_gain": matched_shift_gain(convert, settings=settings, **paired)}
+
+
 def translate_sequence(*, model, source_markers, target_markers, eval_indenters: list[str], n_eval: int,
-                       sampler_steps: int = 1, redraw_taxels: Sequence[str] = (), redraw_match: bool = False,
+                       sampler_steps: int = 1, redraw_taxels: Sequence[str] = (), redraw_match: str = "none",
                        source: str = "", target: str = ""):
     """Nodes translate_sim[source,target] / translate[source,target]: the source sequence
     (source_markers, a marker artifact) translated into the target's marker style by the M2M
     model (chunks: images + the source labels); returns the target's reference, `features`
     and `eval_frames` of the evaluation frames, figures/examples and attrs.  redraw_taxels:
     the taxel skins whose translations are redrawn as their dots (_in_target_space; attrs
-    redraw_taxels true where done); redraw_match: their dots' motion and area change scaled by
-    matched_gain on the model's fine-tuning frames (attrs redraw_gain).  source, target: the
-    skins' names (the fan-out's values)."""
+    redraw_taxels true where done); redraw_match (REDRAW_MATCH): "spread" scales their dots'
+    motion and area change by matched_gain, "shift" their common shift by matched_shift_gain,
+    both measured on the model's fine-tuning frames (attrs redraw_gain, redraw_shift_gain);
+    "none" draws them as read.  source, target: the skins' names (the fan-out's values)."""
     from stages.m2m.model import load_translator
+    if redraw_match not in REDRAW_MATCH:
+        raise ValueError(f"m2m.redraw_match must be one of {', '.join(REDRAW_MATCH)}, got {redraw_match!r}")
     translator = load_translator(model)
     src_ref = np.asarray(source_markers["reference"], np.uint8)
     tgt_ref = np.asarray(target_markers["reference"], np.uint8)
     trained = attrs_of(model)
     gain_of = None
-    if redraw_match:
-        gain_of = lambda convert, settings: matched_gain(
-            convert, source_markers, target_markers, trained["train_indenters"],
-            int(trained.get("pairs_per_skin", 0)), settings)
+    if redraw_match != "none":
+        gain_of = lambda convert, settings: _redraw_gains(
+            redraw_match, convert, settings, source_markers=source_markers, target_markers=target_markers,
+            indenters=trained["train_indenters"], pairs=int(trained.get("pairs_per_skin", 0)))
     with torch_threads():
         convert, gain = _in_target_space(
             lambda im: translator.translate(im, src_ref, tgt_ref, int(sampler_steps)), target_markers,
@@ -284,7 +321,9 @@ def translate_sequence(*, model, source_markers, target_markers, eval_indenters:
     result["attrs"].update(sampler_steps=int(sampler_steps), source=source, target=target)
     if gain is not None:
         result["attrs"]["redraw_taxels"] = True
-        result["attrs"]["redraw_gain"] = [float(g) for g in gain]
+        result["attrs"]["redraw_gain"] = [float(g) for g in gain["gain"]]
+        if "shift_gain" in gain:
+            result["attrs"]["redraw_shift_gain"] = [float(g) for g in gain["shift_gain"]]
     return result
 
 

@@ -227,16 +227,19 @@ def dot_changes(images, settings: Mapping) -> tuple[np.ndarray, np.ndarray]:
     return centres - taxel_centres(pad), areas - float(settings.get("base_area", BASE_AREA))
 
 
-def redraw(images, settings: Mapping, supersample: int = 4, gain=(1.0, 1.0, 1.0)) -> np.ndarray:
+def redraw(images, settings: Mapping, supersample: int = 4, gain=(1.0, 1.0, 1.0),
+           shift_gain=None) -> np.ndarray:
     """Images (N, H, W) 0/255 read as a taxel skin's dots (read_dots) and drawn again as
     signal_to_marker draws that skin.  settings: the skin's signal_to_marker keywords (a taxel
     markers artifact's attrs["settings"]); pad_mm, base_area, min_area, max_area, max_offset
     and z_only are used (defaults as signal_to_marker's), s_xy and s_z scale signals and do not
     matter here.  gain (x, y, area): the read offsets and area changes (dot_changes) are
-    multiplied by it before drawing (1: as read).  Areas are clipped to min_area..max_area, offsets to max_offset grid units,
-    and a z-only skin's dots stay at their taxel centres.  An image of the skin redraws as itself up to the
-    dots' rasterised edges; a translation into the skin becomes an image the skin can show
-    (z-only dots cannot move)."""
+    multiplied by it before drawing (1: as read).  shift_gain (x, y): the dots' common shift
+    (their mean offset in a frame) is multiplied by it instead, the rest of each dot's offset by
+    gain (None: gain scales both, the whole offset).  Areas are clipped to min_area..max_area,
+    offsets to max_offset grid units, and a z-only skin's dots stay at their taxel centres.  An
+    image of the skin redraws as itself up to the dots' rasterised edges; a translation into the
+    skin becomes an image the skin can show (z-only dots cannot move)."""
     ims = np.asarray(images)
     if ims.ndim != 3:
         raise ValueError(f"redraw: images must be (N,H,W), got {ims.shape}")
@@ -253,9 +256,17 @@ def redraw(images, settings: Mapping, supersample: int = 4, gain=(1.0, 1.0, 1.0)
     if g.shape != (3,) or not np.isfinite(g).all() or (g <= 0).any():
         raise ValueError(f"redraw: gain must be 3 positive numbers (x, y, area), got {gain!r}")
     offsets, changes = dot_changes(ims, {**settings, "pad_mm": pad, "base_area": base_area})
+    if shift_gain is None:
+        offsets = offsets * g[:2]
+    else:
+        s = np.asarray(shift_gain, float)
+        if s.shape != (2,) or not np.isfinite(s).all() or (s <= 0).any():
+            raise ValueError(f"redraw: shift_gain must be 2 positive numbers (x, y), got {shift_gain!r}")
+        shift = offsets.mean(1, keepdims=True)
+        offsets = (offsets - shift) * g[:2] + shift * s
     pitch = np.array([pad[0] / TAXELS[1], pad[1] / TAXELS[0]])
     limit = 0.0 if z_only else max_offset
-    centres = taxel_centres(pad) + np.clip(offsets * g[:2], -limit * pitch, limit * pitch)
+    centres = taxel_centres(pad) + np.clip(offsets, -limit * pitch, limit * pitch)
     areas = base_area + changes * g[2]
     return _draw(centres, np.clip(areas, min_area, max_area), size=ims.shape[1:], pad_mm=pad,
                  supersample=supersample)

@@ -156,8 +156,10 @@ def test_translations_into_a_listed_taxel_skin_are_redrawn_as_its_dots(skins, mo
                                           redraw_taxels=["Array3"]))
 
 
-def _taxel_skin(like, seed=0):
-    """A 3-axis taxel skin on `like`'s frames at its size: dots moved and grown at random."""
+def _taxel_skin(like, seed=0, shift=0.0):
+    """A 3-axis taxel skin on `like`'s frames at its size: dots moved and grown at random, and
+    with shift > 0 all 16 of a frame's dots moved together by a random common shift (signal
+    units, sd `shift`)."""
     from stages.markers.uskin import MID_SCALE, signal_to_marker
     size = like["images"].shape[1:]
     settings = {"size": list(size), "pad_mm": [24.6, 22.6], "z_only": False, "base_area": 4.0,
@@ -166,6 +168,8 @@ def _taxel_skin(like, seed=0):
     rng = np.random.default_rng(seed)
     n = len(like["images"])
     raw = base + np.concatenate([rng.normal(0, 2000, (n, 16, 2)), rng.uniform(0, 600, (n, 16, 1))], -1)
+    if shift > 0:
+        raw[..., :2] += rng.normal(0, shift, (n, 1, 2))
     kw = dict(s_xy=20000.0, s_z=150.0, **{k: v for k, v in settings.items() if k != "size"})
     return {**like, "images": signal_to_marker(raw, base, size=size, **kw),
             "reference": signal_to_marker(base, base, size=size, **kw),
@@ -185,24 +189,47 @@ def test_matched_gain_restores_the_spread_of_a_timid_translators_dots(skins):
     assert gain(lambda ims: redraw(ims, settings, gain=(0.01, 1.0, 1.0)))[0] == nodes.MATCH_GAIN_RANGE[1]
 
 
-def test_translate_redraw_match_draws_with_the_matched_gain(skins, trained, monkeypatch):
-    """translate with redraw_match into a listed taxel skin: attrs carry the gain, which is
-    matched_gain on the model's training indenters, and the images are the plain
-    translation redrawn with it."""
+def test_matched_shift_gain_restores_the_common_shift_of_a_timid_translator(skins):
+    """A 'translator' that draws the dots' common shift at half its size (x) and as it is (y)
+    gets shift gains ~(2, 1), whatever it does to the rest of their motion; one that copies
+    gets 1."""
+    from stages.markers.uskin import redraw
+    tgt, settings = _taxel_skin(skins["Circle3"], shift=4000.0)
+    gain = lambda convert: nodes.matched_shift_gain(convert, tgt, tgt, ["sphere"], 0, settings)
+    assert gain(lambda ims: ims) == pytest.approx((1.0, 1.0), rel=0.03)
+    assert gain(lambda ims: redraw(ims, settings, shift_gain=(0.5, 1.0))) == pytest.approx((2.0, 1.0), rel=0.1)
+    assert gain(lambda ims: redraw(ims, settings, gain=(0.5, 0.5, 1.0), shift_gain=(0.5, 1.0))) == \
+        pytest.approx((2.0, 1.0), rel=0.1)
+
+
+@pytest.mark.parametrize("mode", ["spread", "shift"])
+def test_translate_redraw_match_draws_with_the_matched_gain(skins, trained, monkeypatch, mode):
+    """translate with redraw_match into a listed taxel skin: attrs carry the gains, which are
+    matched_gain ("spread") or matched_shift_gain ("shift") on the model's training indenters,
+    and the images are the plain translation redrawn with them; an unknown mode is refused."""
     from stages.m2m.model import load_translator
     from stages.markers.uskin import redraw
     monkeypatch.setattr("stages.imagemetrics.inception_features",
                         lambda images, **kw: np.zeros((len(images), 4)))
     src = skins["Circle3"]
-    tgt, settings = _taxel_skin(src, seed=1)
+    tgt, settings = _taxel_skin(src, seed=1, shift=3000.0)
     run = dict(model=trained, source_markers=src, target_markers=tgt, eval_indenters=["wave"], n_eval=4,
                target="uskin-3axis", redraw_taxels=["uskin-3axis"])
-    chunks, out = run_node(nodes.translate_sequence(**run, redraw_match=True))
-    g = tuple(out["attrs"]["redraw_gain"])
+    chunks, out = run_node(nodes.translate_sequence(**run, redraw_match=mode))
     translator = load_translator(trained)
     plain = lambda ims: translator.translate(ims, src["reference"], tgt["reference"], 1)
-    assert g == nodes.matched_gain(plain, src, tgt, ["sphere"], 0, settings) and g != (1.0, 1.0, 1.0)
-    np.testing.assert_array_equal(np.concatenate([c["images"] for c in chunks]),
-                                  redraw(plain(src["images"]), settings, gain=g))
+    if mode == "spread":
+        g = tuple(out["attrs"]["redraw_gain"])
+        assert g == nodes.matched_gain(plain, src, tgt, ["sphere"], 0, settings) and g != (1.0, 1.0, 1.0)
+        assert "redraw_shift_gain" not in out["attrs"]
+        expected = redraw(plain(src["images"]), settings, gain=g)
+    else:
+        g = tuple(out["attrs"]["redraw_shift_gain"])
+        assert g == nodes.matched_shift_gain(plain, src, tgt, ["sphere"], 0, settings) and g != (1.0, 1.0)
+        assert out["attrs"]["redraw_gain"] == [1.0, 1.0, 1.0]
+        expected = redraw(plain(src["images"]), settings, shift_gain=g)
+    np.testing.assert_array_equal(np.concatenate([c["images"] for c in chunks]), expected)
     _, unmatched = run_node(nodes.translate_sequence(**run))
-    assert unmatched["attrs"]["redraw_gain"] == [1.0, 1.0, 1.0]
+    assert unmatched["attrs"]["redraw_gain"] == [1.0, 1.0, 1.0] and "redraw_shift_gain" not in unmatched["attrs"]
+    with pytest.raises(ValueError, match=r"m2m.redraw_match must be one of none, spread, shift, got True"):
+        run_node(nodes.translate_sequence(**run, redraw_match=True))

@@ -227,6 +227,26 @@ def test_redraw_gain_scales_the_dots_motion_and_area_change():
         redraw(images, kw, gain=(1, 0, 1))
 
 
+def test_redraw_shift_gain_scales_only_the_dots_common_shift():
+    """shift_gain (x, y) multiplies the mean offset of a frame's 16 dots, gain the rest of each
+    dot's offset: read back, the common shift is 2x in x and 0.5x in y, the rest and the areas
+    are as they were."""
+    kw = dict(size=SIZE, s_xy=20000.0, s_z=150.0, base_area=BASE_AREA, max_area=16.0, max_offset=0.8)
+    rng = np.random.default_rng(4)
+    raw = BASE + np.concatenate([rng.normal(0, 1000, (24, 16, 2)) + rng.normal(0, 1000, (24, 1, 2)),
+                                 rng.uniform(0, 600, (24, 16, 1))], -1)
+    images = signal_to_marker(raw, BASE, **kw)
+    off, change = dot_changes(images, kw)
+    got_off, got_change = dot_changes(redraw(images, kw, shift_gain=(2.0, 0.5)), kw)
+    shift, got_shift = off.mean(1), got_off.mean(1)
+    for k, g in ((0, 2.0), (1, 0.5)):
+        assert np.polyfit(shift[:, k], got_shift[:, k], 1)[0] == pytest.approx(g, rel=0.05)
+        rest, got_rest = off[..., k] - shift[:, None, k], got_off[..., k] - got_shift[:, None, k]
+        assert np.polyfit(rest.ravel(), got_rest.ravel(), 1)[0] == pytest.approx(1.0, rel=0.05)
+    assert np.polyfit(change.ravel(), got_change.ravel(), 1)[0] == pytest.approx(1.0, rel=0.05)
+    with pytest.raises(ValueError, match=r"redraw: shift_gain must be 2 positive numbers \(x, y\), got \(1, -1\)"):
+        redraw(images, kw, shift_gain=(1, -1))
+
 def test_reference_is_the_uskin_pattern_and_batches_work():
     ref = signal_to_marker(BASE, BASE, size=SIZE)
     assert np.array_equal(ref, rasterize(uskin_pattern(), size=SIZE))
