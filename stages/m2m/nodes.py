@@ -282,10 +282,35 @@ def matched_shift_gain(convert, source_markers, target_markers, indenters: Seque
                        if (fake[:, k] ** 2).sum() > 1e-12 else 1.0 for k in (0, 1))
 
 
+def matched_tilt(convert, source_markers, target_markers, indenters: Sequence[str], pairs: int,
+                 settings: Mapping) -> tuple[tuple[float, float], tuple[float, float]]:
+    """uskin.redraw's tilt for a z-only taxel skin: per axis, the least-squares (a, b) with which
+    the first moment of the skin's own area changes is a times the translations' plus b times
+    their common shift (uskin.load_moments) over the paired frames of matched_gain.  M2M draws
+    a shear into the z-only skin as dot motion, which the skin cannot show, and barely tilts
+    its load; the tilt moves that cue to where the skin has it."""
+    from stages.markers.uskin import USKIN_PAD_MM, load_moments
+    fake_off, fake_area, real_off, real_area = _paired_dot_changes(
+        convert, source_markers, target_markers, indenters, pairs, settings)
+    pad = tuple(float(v) for v in settings.get("pad_mm", USKIN_PAD_MM))
+    fake_moment, fake_shift = load_moments(fake_off, fake_area, pad)
+    real_moment, _ = load_moments(real_off, real_area, pad)
+    out = []
+    for k in (0, 1):
+        x = np.stack([fake_moment[:, k], fake_shift[:, k]], 1)
+        coef, *_ = np.linalg.lstsq(x, real_moment[:, k], rcond=None)
+        out.append(tuple(round(float(c), 4) for c in coef))
+    return tuple(out)
+
+
 def _redraw_gains(mode: str, convert, settings: Mapping, **paired) -> dict:
-    """uskin.redraw's gain keywords for m2m.redraw_match `mode` (REDRAW_MATCH)."""
+    """uskin.redraw's gain keywords for m2m.redraw_match `mode` (REDRAW_MATCH): "shift" matches
+    a 3-axis skin's common shift (matched_shift_gain) and a z-only skin's load tilt
+    (matched_tilt)."""
     if mode == "spread":
         return {"gain": matched_gain(convert, settings=settings, **paired)}
+    if settings.get("z_only", False):
+        return {"gain": (1.0, 1.0, 1.0), "tilt": matched_tilt(convert, settings=settings, **paired)}
     return {"gain": (1.0, 1.0, 1.0), "shift_gain": matched_shift_gain(convert, settings=settings, **paired)}
 
 
@@ -298,9 +323,9 @@ def translate_sequence(*, model, source_markers, target_markers, eval_indenters:
     and `eval_frames` of the evaluation frames, figures/examples and attrs.  redraw_taxels:
     the taxel skins whose translations are redrawn as their dots (_in_target_space; attrs
     redraw_taxels true where done); redraw_match (REDRAW_MATCH): "spread" scales their dots'
-    motion and area change by matched_gain, "shift" their common shift by matched_shift_gain,
-    both measured on the model's fine-tuning frames (attrs redraw_gain, redraw_shift_gain);
-    "none" draws them as read.  source, target: the skins' names (the fan-out's values)."""
+    motion and area change by matched_gain, "shift" their common shift by matched_shift_gain
+    (a z-only skin: tilts their load by matched_tilt), all measured on the model's fine-tuning
+    frames (attrs redraw_gain, redraw_shift_gain, redraw_tilt); "none" draws them as read.  source, target: the skins' names (the fan-out's values)."""
     from stages.m2m.model import load_translator
     if redraw_match not in REDRAW_MATCH:
         raise ValueError(f"m2m.redraw_match must be one of {', '.join(REDRAW_MATCH)}, got {redraw_match!r}")
@@ -324,6 +349,8 @@ def translate_sequence(*, model, source_markers, target_markers, eval_indenters:
         result["attrs"]["redraw_gain"] = [float(g) for g in gain["gain"]]
         if "shift_gain" in gain:
             result["attrs"]["redraw_shift_gain"] = [float(g) for g in gain["shift_gain"]]
+        if "tilt" in gain:
+            result["attrs"]["redraw_tilt"] = [[float(v) for v in row] for row in gain["tilt"]]
     return result
 
 

@@ -227,8 +227,17 @@ def dot_changes(images, settings: Mapping) -> tuple[np.ndarray, np.ndarray]:
     return centres - taxel_centres(pad), areas - float(settings.get("base_area", BASE_AREA))
 
 
+def load_moments(offsets, changes, pad_mm=USKIN_PAD_MM) -> tuple[np.ndarray, np.ndarray]:
+    """The shear cues of taxel dots read by dot_changes: the first moment of their area changes
+    over the pad (N, 2) mm^3, sum of change times taxel position from the pad's centre (a
+    sheared pad sinks behind the contact, so its load pattern tilts), and their common shift
+    (N, 2) mm, the mean offset of a frame's 16 dots."""
+    grid = taxel_centres(tuple(pad_mm))
+    return np.asarray(changes) @ (grid - grid.mean(0)), np.asarray(offsets).mean(1)
+
+
 def redraw(images, settings: Mapping, supersample: int = 4, gain=(1.0, 1.0, 1.0),
-           shift_gain=None) -> np.ndarray:
+           shift_gain=None, tilt=None) -> np.ndarray:
     """Images (N, H, W) 0/255 read as a taxel skin's dots (read_dots) and drawn again as
     signal_to_marker draws that skin.  settings: the skin's signal_to_marker keywords (a taxel
     markers artifact's attrs["settings"]); pad_mm, base_area, min_area, max_area, max_offset
@@ -236,7 +245,11 @@ def redraw(images, settings: Mapping, supersample: int = 4, gain=(1.0, 1.0, 1.0)
     matter here.  gain (x, y, area): the read offsets and area changes (dot_changes) are
     multiplied by it before drawing (1: as read).  shift_gain (x, y): the dots' common shift
     (their mean offset in a frame) is multiplied by it instead, the rest of each dot's offset by
-    gain (None: gain scales both, the whole offset).  Areas are clipped to min_area..max_area,
+    gain (None: gain scales both, the whole offset).  tilt ((a_x, b_x), (a_y, b_y)): the area
+    changes get a plane across the pad, summing to 0 (the total, the normal load, is kept), that
+    makes their first moment along x a_x times its read value plus b_x times the read common
+    shift, and along y likewise (load_moments): how a z-only skin, whose dots cannot move, shows
+    the shear a translation drew as motion.  Areas are clipped to min_area..max_area,
     offsets to max_offset grid units, and a z-only skin's dots stay at their taxel centres.  An
     image of the skin redraws as itself up to the dots' rasterised edges; a translation into the
     skin becomes an image the skin can show (z-only dots cannot move)."""
@@ -256,6 +269,14 @@ def redraw(images, settings: Mapping, supersample: int = 4, gain=(1.0, 1.0, 1.0)
     if g.shape != (3,) or not np.isfinite(g).all() or (g <= 0).any():
         raise ValueError(f"redraw: gain must be 3 positive numbers (x, y, area), got {gain!r}")
     offsets, changes = dot_changes(ims, {**settings, "pad_mm": pad, "base_area": base_area})
+    if tilt is not None:
+        t = np.asarray(tilt, float)
+        if t.shape != (2, 2) or not np.isfinite(t).all():
+            raise ValueError(f"redraw: tilt must be 2x2 numbers ((a_x, b_x), (a_y, b_y)), got {tilt!r}")
+        moment, shift = load_moments(offsets, changes, pad)
+        want = t[:, 0] * moment + t[:, 1] * shift
+        grid = taxel_centres(pad) - taxel_centres(pad).mean(0)
+        changes = changes + (want - moment) @ np.linalg.inv(grid.T @ grid) @ grid.T
     if shift_gain is None:
         offsets = offsets * g[:2]
     else:

@@ -202,17 +202,33 @@ def test_matched_shift_gain_restores_the_common_shift_of_a_timid_translator(skin
         pytest.approx((2.0, 1.0), rel=0.1)
 
 
-@pytest.mark.parametrize("mode", ["spread", "shift"])
-def test_translate_redraw_match_draws_with_the_matched_gain(skins, trained, monkeypatch, mode):
+def test_matched_tilt_finds_the_tilt_that_made_a_z_only_skins_load(skins):
+    """A z-only skin whose load pattern is a 3-axis skin's redrawn with a known tilt: matched_tilt
+    of a 'translator' that draws the 3-axis skin (moving dots) finds that tilt again."""
+    from stages.markers.uskin import redraw
+    src, settings = _taxel_skin(skins["Circle3"], shift=4000.0)
+    z_settings, tilt = {**settings, "z_only": True, "min_area": 0.5}, ((0.8, 20.0), (0.6, -25.0))
+    tgt = {**src, "images": redraw(src["images"], z_settings, tilt=tilt),
+           "attrs": {"look": "taxel", "settings": z_settings}}
+    got = nodes.matched_tilt(lambda ims: ims, src, tgt, ["sphere"], 0, z_settings)
+    for (a, b), (ga, gb) in zip(tilt, got):
+        assert ga == pytest.approx(a, abs=0.1) and gb == pytest.approx(b, rel=0.15)
+
+@pytest.mark.parametrize("mode,z_only", [("spread", False), ("shift", False), ("shift", True)])
+def test_translate_redraw_match_draws_with_the_matched_gain(skins, trained, monkeypatch, mode, z_only):
     """translate with redraw_match into a listed taxel skin: attrs carry the gains, which are
-    matched_gain ("spread") or matched_shift_gain ("shift") on the model's training indenters,
-    and the images are the plain translation redrawn with them; an unknown mode is refused."""
+    matched_gain ("spread"), matched_shift_gain ("shift") or for a z-only skin matched_tilt
+    ("shift") on the model's training indenters, and the images are the plain translation
+    redrawn with them; an unknown mode is refused."""
     from stages.m2m.model import load_translator
     from stages.markers.uskin import redraw
     monkeypatch.setattr("stages.imagemetrics.inception_features",
                         lambda images, **kw: np.zeros((len(images), 4)))
     src = skins["Circle3"]
     tgt, settings = _taxel_skin(src, seed=1, shift=3000.0)
+    if z_only:
+        settings = {**settings, "z_only": True}
+        tgt = {**tgt, "attrs": {"look": "taxel", "settings": settings}}
     run = dict(model=trained, source_markers=src, target_markers=tgt, eval_indenters=["wave"], n_eval=4,
                target="uskin-3axis", redraw_taxels=["uskin-3axis"])
     chunks, out = run_node(nodes.translate_sequence(**run, redraw_match=mode))
@@ -223,6 +239,11 @@ def test_translate_redraw_match_draws_with_the_matched_gain(skins, trained, monk
         assert g == nodes.matched_gain(plain, src, tgt, ["sphere"], 0, settings) and g != (1.0, 1.0, 1.0)
         assert "redraw_shift_gain" not in out["attrs"]
         expected = redraw(plain(src["images"]), settings, gain=g)
+    elif z_only:
+        g = tuple(tuple(row) for row in out["attrs"]["redraw_tilt"])
+        assert g == nodes.matched_tilt(plain, src, tgt, ["sphere"], 0, settings)
+        assert out["attrs"]["redraw_gain"] == [1.0, 1.0, 1.0] and "redraw_shift_gain" not in out["attrs"]
+        expected = redraw(plain(src["images"]), settings, tilt=g)
     else:
         g = tuple(out["attrs"]["redraw_shift_gain"])
         assert g == nodes.matched_shift_gain(plain, src, tgt, ["sphere"], 0, settings) and g != (1.0, 1.0)

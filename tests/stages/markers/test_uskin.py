@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from stages.markers.patterns import USKIN_PAD_MM, rasterize, uskin_pattern
-from stages.markers.uskin import (BASE_AREA, GAINS, MID_SCALE, _dots, dot_changes, parse_xela, read_dots, redraw,
+from stages.markers.uskin import (BASE_AREA, GAINS, MID_SCALE, _dots, dot_changes, load_moments, parse_xela, read_dots, redraw,
                                   signal_to_marker, taxel_centres, taxel_sequence, taxel_signals,
                                   taxel_weights)
 from tests.helpers import drain
@@ -246,6 +246,34 @@ def test_redraw_shift_gain_scales_only_the_dots_common_shift():
     assert np.polyfit(change.ravel(), got_change.ravel(), 1)[0] == pytest.approx(1.0, rel=0.05)
     with pytest.raises(ValueError, match=r"redraw: shift_gain must be 2 positive numbers \(x, y\), got \(1, -1\)"):
         redraw(images, kw, shift_gain=(1, -1))
+
+def test_redraw_tilt_moves_a_drawn_shear_into_a_z_only_skins_load():
+    """tilt ((a_x, b_x), (a_y, b_y)) redraws a translation's moving dots into a z-only skin with
+    the first moment of their area changes a times its read value plus b times the dots' read
+    common shift (load_moments), the total area kept and the dots at their taxels; without it
+    the moment ignores the shift."""
+    kw = dict(size=SIZE, s_xy=20000.0, s_z=150.0, base_area=BASE_AREA, max_area=16.0, max_offset=0.8,
+              min_area=0.5)
+    rng = np.random.default_rng(5)
+    raw = BASE + np.concatenate([rng.normal(0, 300, (24, 16, 2)) + rng.normal(0, 2000, (24, 1, 2)),
+                                 rng.uniform(100, 500, (24, 16, 1))], -1)
+    images = signal_to_marker(raw, BASE, **kw)
+    moment, shift = load_moments(*dot_changes(images, kw), USKIN_PAD_MM)
+    assert np.abs(shift).mean() > 0.3                                   # mm: the dots moved
+    z_kw, tilt = {**kw, "z_only": True}, ((0.5, 30.0), (0.5, -30.0))
+    want = np.stack([a * moment[:, k] + b * shift[:, k] for k, (a, b) in enumerate(tilt)], 1)
+    off, change = dot_changes(redraw(images, z_kw, tilt=tilt), z_kw)
+    got, got_shift = load_moments(off, change, USKIN_PAD_MM)
+    assert np.abs(got_shift).max() < 1e-9
+    for k in (0, 1):
+        assert np.corrcoef(want[:, k], got[:, k])[0, 1] > 0.98
+        assert np.polyfit(want[:, k], got[:, k], 1)[0] == pytest.approx(1.0, abs=0.1)
+    plain_off, plain_change = dot_changes(redraw(images, z_kw), z_kw)
+    assert np.abs(change.sum(1) - plain_change.sum(1)).mean() < 0.3     # mm^2, of ~3.5 sd
+    plain, _ = load_moments(plain_off, plain_change, USKIN_PAD_MM)
+    assert max(abs(np.corrcoef(want[:, k], plain[:, k])[0, 1]) for k in (0, 1)) < 0.8
+    with pytest.raises(ValueError, match=r"redraw: tilt must be 2x2 numbers \(\(a_x, b_x\), \(a_y, b_y\)\), got \(1, 2\)"):
+        redraw(images, z_kw, tilt=(1, 2))
 
 def test_reference_is_the_uskin_pattern_and_batches_work():
     ref = signal_to_marker(BASE, BASE, size=SIZE)
