@@ -215,7 +215,7 @@ def _in_target_space(convert, target_markers, target: str, redraw_taxels: Sequen
                      gain_of=None):
     """`convert`, followed for a target skin named in `redraw_taxels` by uskin.redraw: the
     output read as the taxel skin's 16 dots and drawn again as the skin draws them, with
-    redraw's gain keywords `gain_of(convert, settings)` (gain, shift_gain) when given.
+    redraw's gain keywords `gain_of(convert, settings)` (gain, shift_gain, tilt) when given.
     Returns (convert, the keywords: None where it does not redraw)."""
     if target not in set(redraw_taxels or ()):
         return convert, None
@@ -325,7 +325,8 @@ def translate_sequence(*, model, source_markers, target_markers, eval_indenters:
     redraw_taxels true where done); redraw_match (REDRAW_MATCH): "spread" scales their dots'
     motion and area change by matched_gain, "shift" their common shift by matched_shift_gain
     (a z-only skin: tilts their load by matched_tilt), all measured on the model's fine-tuning
-    frames (attrs redraw_gain, redraw_shift_gain, redraw_tilt); "none" draws them as read.  source, target: the skins' names (the fan-out's values)."""
+    frames (attrs redraw_gain, redraw_shift_gain, redraw_tilt); "none" draws them as read.
+    source, target: the skins' names (the fan-out's values)."""
     from stages.m2m.model import load_translator
     if redraw_match not in REDRAW_MATCH:
         raise ValueError(f"m2m.redraw_match must be one of {', '.join(REDRAW_MATCH)}, got {redraw_match!r}")
