@@ -23,7 +23,10 @@ r18 differ by 10%).  Across sensor kinds they do not (the TacTip twin's dome she
 third of GelSight's ratio), so mode "axes" also scales Fx, Fy by the ratio of the two sensors'
 shear gains: a calibration with a shear leg at d_max (calibration_trajectory shear_mm) gives
 gain = sum |F_xy| / sum |F_z| over its shear-out frames, and shear labels are scaled by
-r(d) * gain_target / gain_source.  Without a shear leg on both sides "axes" is "normal".
+r(d) * gain_target / gain_source, divided by the depth ratio k below where the two sensors'
+collections reach different normalised depths (shear_ratio: a sticking shear's force does not
+grow with depth, the punch's normal force does, so a gain read deeper is smaller).  Without a
+shear leg on both sides "axes" is "normal".
 
 Depth: each curve is a function of its own sensor's normalised depth (depth / the sensor's
 calibration d_max).  A location-paired frame presses every sensor to the same fraction of its
@@ -180,30 +183,37 @@ def label_scale(normalised_depth, loading, source: Curves, target: Curves, eps: 
     return k * slope(target, k * d) / slope(source, d)     # k = 1: exact, x * 1.0 == x
 
 
-def shear_ratio(source: Curves, target: Curves, mode: str) -> float:
-    """The extra factor on Fx, Fy: gain_target / gain_source in mode "axes" when both
-    calibrations have a shear leg, else 1 (the paper's "normal" mode)."""
+def shear_ratio(source: Curves, target: Curves, mode: str, depth_ratio: float = 1.0) -> float:
+    """The extra factor on Fx, Fy: gain_target / gain_source / depth_ratio in mode "axes" when
+    both calibrations have a shear leg, else 1 (the paper's "normal" mode).  Each gain is
+    measured at its calibration's d_max; a paired frame at the source's normalised depth d
+    meets the target at depth_ratio * d, and a shear that sticks keeps its force while the
+    flat punch's normal force grows with depth (Mindlin against Sneddon), so a gain read at
+    normalised depth x is gain / x and the ratio at the collection is the gains' ratio over
+    depth_ratio (1 for sensors of one depth range)."""
     if mode not in MODES:
         raise ValueError(f"compensation mode {mode!r} is not one of {MODES}")
     if mode == "normal" or source.shear_gain is None or target.shear_gain is None:
         return 1.0
     if not (source.shear_gain > 0 and target.shear_gain > 0):
         raise ValueError(f"shear gains {source.shear_gain} / {target.shear_gain} must be positive")
-    return target.shear_gain / source.shear_gain
+    if not depth_ratio > 0:
+        raise ValueError(f"depth_ratio {depth_ratio} must be positive")
+    return target.shear_gain / source.shear_gain / float(depth_ratio)
 
 
 def compensate(force, normalised_depth, loading, source: Curves, target: Curves,
                eps: float = 1e-6, *, mode: str = "normal", depth_ratio: float = 1.0) -> np.ndarray:
     """Source labels rescaled to the target's material: Fz * r per frame, Fx and Fy * r times
-    shear_ratio (mode "axes"; "normal" scales them by r like Fz, the paper's); r evaluates the
-    target's curve at depth_ratio times the source's normalised depth.
+    shear_ratio (mode "axes", at depth_ratio; "normal" scales them by r like Fz, the paper's);
+    r evaluates the target's curve at depth_ratio times the source's normalised depth.
 
     Identical source and target curves at depth_ratio 1 return the labels unchanged (bit for bit).
     """
     force = np.asarray(force)
     if force.ndim != 2 or force.shape[1] != 3:
         raise ValueError(f"compensate: force must be (N,3), got {force.shape}")
-    shear = shear_ratio(source, target, mode)
+    shear = shear_ratio(source, target, mode, depth_ratio)
     if source == target and depth_ratio == 1.0:
         return force.copy()
     scale = label_scale(normalised_depth, loading, source, target, eps, depth_ratio)

@@ -177,7 +177,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
             "attrs": {"config": genforce.config, "train": train, "source": source, "target": target,
                       "compensation_identity": bool(identity), "compensation": compensation,
                       "compensation_depth": compensation_depth, "depth_ratio": k,
-                      "shear_ratio": shear_ratio(src_curves, tgt_curves, compensation),
+                      "shear_ratio": shear_ratio(src_curves, tgt_curves, compensation, k),
                       "force_range": {m: {"min": mdl.config["force_min"], "max": mdl.config["force_max"]}
                                       for m, mdl in models.items()},
                       "curves": {"source": src_curves.as_dict(), "target": tgt_curves.as_dict()},

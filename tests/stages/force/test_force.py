@@ -218,7 +218,11 @@ def test_shear_gain_and_axes_mode():
     assert fit_curves(*_calibration(1.0)).shear_gain is None
     assert shear_ratio(src, tgt, "axes") == pytest.approx(0.2)
     assert shear_ratio(src, tgt, "normal") == 1.0
+    assert shear_ratio(src, tgt, "axes", 1.4) == pytest.approx(0.2 / 1.4)     # gains read deeper
+    assert shear_ratio(src, tgt, "normal", 1.4) == 1.0
     assert shear_ratio(src, fit_curves(*_calibration(2.0)), "axes") == 1.0     # no leg: normal
+    with pytest.raises(ValueError, match="depth_ratio 0.0 must be positive"):
+        shear_ratio(src, tgt, "axes", 0.0)
     with pytest.raises(ValueError, match="'both'"):
         shear_ratio(src, tgt, "both")
     force = np.array([[1.0, -2.0, -4.0]], np.float32)
@@ -226,6 +230,11 @@ def test_shear_gain_and_axes_mode():
     np.testing.assert_allclose(compensate(force, depth, loading, src, tgt, mode="axes"),
                                [[0.4, -0.8, -8.0]], rtol=1e-6)       # r = 2; shear x 2 x 0.2
     np.testing.assert_allclose(compensate(force, depth, loading, src, tgt), [[2.0, -4.0, -8.0]], rtol=1e-6)
+    # depth ratio 2: Fz by the target's curve at 2 d (r), shear by r times 0.2 / 2
+    deep = compensate(force, depth, loading, src, tgt, mode="axes", depth_ratio=2.0)
+    r = deep[0, 2] / -4.0
+    assert r > 4.0
+    np.testing.assert_allclose(deep[0, :2], [1.0 * r * 0.1, -2.0 * r * 0.1], rtol=1e-6)
     assert Curves.from_dict(src.as_dict()) == src
 
 
