@@ -232,8 +232,13 @@ def load_moments(offsets, changes, pad_mm=USKIN_PAD_MM) -> tuple[np.ndarray, np.
     over the pad (N, 2) mm^3, sum of change times taxel position from the pad's centre (a
     sheared pad sinks behind the contact, so its load pattern tilts), and their common shift
     (N, 2) mm, the mean offset of a frame's 16 dots."""
+    return np.asarray(changes) @ _taxel_positions(pad_mm), np.asarray(offsets).mean(1)
+
+
+def _taxel_positions(pad_mm) -> np.ndarray:
+    """(16, 2) mm: the taxel centres from the pad's centre (the lever arms of load_moments)."""
     grid = taxel_centres(tuple(pad_mm))
-    return np.asarray(changes) @ (grid - grid.mean(0)), np.asarray(offsets).mean(1)
+    return grid - grid.mean(0)
 
 
 def redraw(images, settings: Mapping, supersample: int = 4, gain=(1.0, 1.0, 1.0),
@@ -275,7 +280,7 @@ def redraw(images, settings: Mapping, supersample: int = 4, gain=(1.0, 1.0, 1.0)
             raise ValueError(f"redraw: tilt must be 2x2 numbers ((a_x, b_x), (a_y, b_y)), got {tilt!r}")
         moment, shift = load_moments(offsets, changes, pad)
         want = t[:, 0] * moment + t[:, 1] * shift
-        grid = taxel_centres(pad) - taxel_centres(pad).mean(0)
+        grid = _taxel_positions(pad)
         changes = changes + (want - moment) @ np.linalg.inv(grid.T @ grid) @ grid.T
     if shift_gain is None:
         offsets = offsets * g[:2]
