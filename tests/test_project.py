@@ -28,11 +28,34 @@ def test_dvc_yaml_in_sync():
     assert p.returncode == 0, "dvc.yaml is out of date: run `pipeline dvc` and commit it"
 
 
-@pytest.mark.parametrize("profile", ["default", "ci", "paper"])
+@pytest.mark.parametrize("profile", ["default", "ci", "paper", "allpairs"])
 def test_profiles_load(profile):
     project = find_project(ROOT)
     params = P.load(project.params_file, profile, [], project.profiles_dir)
     project.load_graph().expand(params)  # every reference resolves
+
+
+def test_allpairs_adds_pairs_and_changes_nothing_else():
+    """The allpairs profile runs every ordered pair of the default profile's twins; every node
+    instance the default has keeps its params there (so a default store serves it), except the
+    studies, whose pair lists grow."""
+    from itertools import permutations
+    project = find_project(ROOT)
+    graph = project.load_graph()
+    base = graph.expand(P.load(project.params_file, None, [], project.profiles_dir))
+    every = graph.expand(P.load(project.params_file, "allpairs", [], project.profiles_dir))
+    studies = {"homo", "material", "hetero"}
+    changed = sorted(n for n, inst in base.items()
+                     if n not in studies and (n not in every or every[n].params != inst.params))
+    assert changed == []
+    pairs = lambda inst: {tuple(p) for g in inst.params["groups"].values() for p in g}
+    twins = {"homo": ["gelsight-A-I", "gelsight-A-II", "gelsight-C-I", "gelsight-C-II", "gelsight-D-I"],
+             "material": ["gelsight-r6", "gelsight-r10", "gelsight-r18"],
+             "hetero": ["gelsight-A-II", "tactip", "uskin-3axis", "uskin-z"]}
+    for study, skins in twins.items():
+        assert pairs(every[study]) == set(permutations(skins, 2)), study
+        assert pairs(base[study]) < pairs(every[study]), study
+    assert len([n for n in every if n.startswith("transfer[")]) == 20 + 6 + 12
 
 
 @pytest.fixture(scope="module")
