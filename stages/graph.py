@@ -160,7 +160,7 @@ GRAPH.node("transfer", "stages.force.nodes:fit_transfer",
 _STUDY = {"features": "features[*]", "translated": "translate[*]", "warped": "flow_warp[*]",
           "own": "own[*]", "transfer": "transfer[*]", "markers": "markers[*]"}
 _STUDY_PARAMS = {"test_indenters": "splits.test_indenters", "kid_subset": "m2m.kid_subset",
-                 "trace_frames": "force.trace_frames"}
+                 "trace_frames": "force.trace_frames", "seen_indenters": "splits.train_indenters"}
 GRAPH.node("homo", "stages.studies:transfer_study", inputs=_STUDY,
            params={**_STUDY_PARAMS, "study": "homo.study", "groups": "homo.groups"},
            description="study homo (paper Fig. 4): the five GelSight twins")

@@ -33,9 +33,10 @@ def group_means(metrics: Mapping[str, float], study: str, groups: Mapping[str, l
 def transfer_study(*, study: str, groups: Mapping[str, list], features: Mapping, translated: Mapping,
                    warped: Mapping, own: Mapping, transfer: Mapping, markers: Mapping,
                    test_indenters: list, kid_subset: int, trace_frames: int,
-                   seeds: Mapping | None = None) -> dict:
+                   seeds: Mapping | None = None, seen_indenters: list = ()) -> dict:
     """One study over the pairs of all its groups (a pair in two groups is scored once);
-    seeds: genforce_comp models of other regressor seeds (force_study)."""
+    seeds: genforce_comp models of other regressor seeds, seen_indenters: the training
+    indenters, scored as well (force_study)."""
     from stages.force.nodes import force_study
     from stages.m2m.nodes import image_study
     pairs: list[list[str]] = []
@@ -44,7 +45,8 @@ def transfer_study(*, study: str, groups: Mapping[str, list], features: Mapping,
     images = image_study(study=study, pairs=pairs, features=features, translated=translated,
                          warped=warped, kid_subset=kid_subset)
     force = force_study(study=study, pairs=pairs, own=own, transfer=transfer, markers=markers,
-                        test_indenters=test_indenters, trace_frames=trace_frames, seeds=seeds)
+                        test_indenters=test_indenters, trace_frames=trace_frames, seeds=seeds,
+                        seen_indenters=seen_indenters)
     metrics = {**images.pop("metrics"), **force.pop("metrics")}
     if len(groups) > 1:
         metrics.update(group_means(metrics, study, groups))

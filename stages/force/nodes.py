@@ -32,6 +32,12 @@ LABELS = "labels_comp"
 # genforce_comp over several regressor seeds (transfer's and seed[...]'s): the mean of each
 # metric, and its standard deviation as sd_<metric>
 SEEDS = "genforce_comp_seeds"
+# the transferred models (and source-only) scored on the target's contacts of the seen
+# (training) indenters as well: method <method>_seen.  GenForce never sees the target's labels
+# nor, past M2M's few fine-tuning pairs, its images, so these frames are test data for every
+# method but the oracle, which trained on them (no oracle_seen).
+SEEN = "_seen"
+SEEN_METHODS = ("source_only", "genforce", "genforce_comp")
 _COLOURS = {"source_only": "C3", "genforce": "C0", "genforce_comp": "C2", "oracle": "0.45"}
 
 
@@ -286,7 +292,8 @@ def compensated_test_labels(source_art, transfer_art, test_indenters, target_fra
 def force_study(*, study: str, pairs: Sequence[Sequence[str]], own: Mapping[str, Mapping],
                 transfer: Mapping[str, Mapping], markers: Mapping[str, Mapping],
                 test_indenters: Sequence[str], trace_frames: int = 1000,
-                seeds: Mapping[str, Mapping] | None = None) -> dict:
+                seeds: Mapping[str, Mapping] | None = None,
+                seen_indenters: Sequence[str] = ()) -> dict:
     """Node `homo` / `material` / `hetero` (force part): four methods per source -> target pair,
     all scored on the target's test contacts (`test_indenters`) against the target's labels:
 
@@ -302,13 +309,15 @@ def force_study(*, study: str, pairs: Sequence[Sequence[str]], own: Mapping[str,
     that `seeds` (fit_transfer_seed artifacts keyed "source=..,target=..,seed=..") has models
     of, the method SEEDS: genforce_comp's metrics averaged over transfer's model and those,
     with sd_<metric> their standard deviation (mean over pairs in `<study>/mean/` when every
-    pair has them); arrays mae/<method> (pairs, 4: fx, fy, fz, total), r2/<method> (pairs, 3), pairs
+    pair has them).  With `seen_indenters` (the training indenters), source_only, genforce and
+    genforce_comp are also scored on the target's contacts of those: methods `<method>_seen`
+    (SEEN; the paper's seen / unseen split), figure seen_unseen.  Arrays mae/<method> (pairs, 4: fx, fy, fz, total), r2/<method> (pairs, 3), pairs
     ("source_target"), sources, targets, trace/*; figures radar (MAE), r2_hist, trace, violin.
     """
     from stages.common import torch_threads
     with torch_threads():
         return _force_study(study, pairs, own, transfer, markers, test_indenters, trace_frames,
-                            seeds or {})
+                            seeds or {}, list(seen_indenters or ()))
 
 
 def _seed_models(seeds: Mapping[str, Mapping], source: str, target: str) -> list[Mapping]:
@@ -321,7 +330,8 @@ def _seed_models(seeds: Mapping[str, Mapping], source: str, target: str) -> list
     return [art for _, art in sorted(found, key=lambda x: x[0])]
 
 
-def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_frames, seeds) -> dict:
+def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_frames, seeds,
+                 seen_indenters) -> dict:
     from stages.force.metrics import METRICS, force_metrics
     from stages.force.model import load_model, predict_contacts
     pairs = [(str(s), str(t)) for s, t in pairs]
@@ -332,7 +342,10 @@ def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_fra
                                  ("transfer", transfer, f"source={s},target={t}")):
             if key not in table:
                 raise KeyError(f"force_study[{study}]: {name} has no {key!r} (pair {s} -> {t})")
-    tests, oracle_pred, metrics = {}, {}, {}
+    overlap = sorted(set(map(str, seen_indenters)) & set(map(str, test_indenters)))
+    if overlap:
+        raise ValueError(f"force_study[{study}]: indenters {overlap} are both seen and test indenters")
+    tests, seen_sets, oracle_pred, metrics = {}, {}, {}, {}
     per_pair: list[dict] = []
     for s, t in pairs:
         if t not in tests:
@@ -362,6 +375,17 @@ def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_fra
                 values = [r[k] for r in runs]
                 metrics[f"{study}/{s}_{t}/{SEEDS}/{k}"] = float(np.mean(values))
                 metrics[f"{study}/{s}_{t}/{SEEDS}/sd_{k}"] = float(np.std(values, ddof=1))
+        if seen_indenters:
+            if t not in seen_sets:
+                seen_sets[t] = _test_set(markers[t], seen_indenters)
+            seen = seen_sets[t]
+            seen_models = {"source_only": (own[s], "weights"), "genforce": (tr, "genforce"),
+                           "genforce_comp": (tr, "genforce" if identical else "genforce_comp")}
+            for m, (art, prefix) in seen_models.items():
+                pred = predict_contacts(load_model(art, prefix), seen["images"], seen["contact_id"],
+                                        seen["reference"])
+                for k, v in force_metrics(pred, seen["force"]).items():
+                    metrics[f"{study}/{s}_{t}/{m}{SEEN}/{k}"] = v
         labels = (compensated_test_labels(markers[s], tr, test_indenters, test["frame"])
                   if s in markers else None)
         if labels is not None:
@@ -372,7 +396,8 @@ def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_fra
     for m in METHODS:
         for k in METRICS:
             metrics[f"{study}/mean/{m}/{k}"] = float(np.mean([p["scores"][m][k] for p in per_pair]))
-    for method, names in ((LABELS, METRICS), (SEEDS, [*METRICS, *(f"sd_{k}" for k in METRICS)])):
+    for method, names in ((LABELS, METRICS), (SEEDS, [*METRICS, *(f"sd_{k}" for k in METRICS)]),
+                          *((f"{m}{SEEN}", METRICS) for m in SEEN_METHODS)):
         for k in names:
             have = [metrics[f"{study}/{s}_{t}/{method}/{k}"] for s, t in pairs
                     if f"{study}/{s}_{t}/{method}/{k}" in metrics]
@@ -393,10 +418,14 @@ def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_fra
                "r2_hist": _r2_hist_png(r2, study),
                "trace": _trace_png(trace, f"{study}: {rep['source']} -> {rep['target']}"),
                "violin": _violin_png(per_pair, study)}
+    if seen_indenters:
+        figures["seen_unseen"] = _seen_unseen_png(metrics, study)
     return {"mae": mae, "r2": r2, "pairs": labels, "sources": [p["source"] for p in per_pair],
             "targets": [p["target"] for p in per_pair], "trace": trace, "figures": figures,
             "metrics": metrics,
             "attrs": {"study": study, "test_indenters": list(test_indenters),
+                      "seen_indenters": list(seen_indenters),
+                      "seen_frames": {t: int(len(v["force"])) for t, v in seen_sets.items()},
                       "trace_pair": [rep["source"], rep["target"]],
                       "test_frames": {t: int(len(v["force"])) for t, v in tests.items()}}}
 
@@ -472,6 +501,28 @@ def _trace_png(trace: Mapping[str, np.ndarray], title: str):
             ax.legend(fontsize=7, ncol=3)
     fig.axes[-1].set_xlabel("test frame")
     return _png(fig)
+
+
+def _seen_unseen_png(metrics: Mapping[str, float], study: str):
+    """Mean MAE over the pairs per axis and method, on the seen and the unseen indenters."""
+    fig = _figure(figsize=(9, 3.0))
+    width = 0.8 / len(SEEN_METHODS)
+    for k, comp in enumerate(("fx", "fy", "fz", "total")):
+        ax = fig.add_subplot(1, 4, k + 1)
+        for j, m in enumerate(SEEN_METHODS):
+            v = [metrics[f"{study}/mean/{m}{SEEN}/mae_{comp}"], metrics[f"{study}/mean/{m}/mae_{comp}"]]
+            ax.bar(np.arange(2) + (j - (len(SEEN_METHODS) - 1) / 2) * width, v, width,
+                   color=_COLOURS[m], label=m)
+        ax.set_xticks(np.arange(2))
+        ax.set_xticklabels(["seen", "unseen"], fontsize=8)
+        ax.tick_params(axis="y", labelsize=7)
+        ax.set_title(f"MAE {'Ft (mean)' if comp == 'total' else 'F' + comp[1]} (N)", fontsize=9)
+    fig.suptitle(f"{study}: seen vs unseen indenters (mean over pairs)", fontsize=9)
+    fig.tight_layout(rect=(0, 0, 1, 0.9))
+    fig.legend(*fig.axes[0].get_legend_handles_labels(), loc="upper left", ncol=3, fontsize=7,
+               frameon=False)
+    from stages.figures import figure_png
+    return figure_png(fig)
 
 
 def _violin_png(per_pair: list[dict], study: str):

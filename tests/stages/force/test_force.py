@@ -485,3 +485,32 @@ def test_force_study_seeds_average_genforce_comp_over_the_seed_models(nodes_out,
     assert m["toy/A_B/genforce_comp_seeds/r2_fz"] == pytest.approx(
         (2 * m["toy/A_B/genforce_comp/r2_fz"] + other["r2_fz"]) / 3)
     assert not any("/B_A/genforce_comp_seeds/" in k or "/mean/genforce_comp_seeds/" in k for k in m)
+
+
+def test_force_study_scores_the_seen_indenters_too(nodes_out, skins):
+    """seen_indenters: source_only, genforce and genforce_comp scored on the target's contacts
+    of those indenters as well (<method>_seen, and their mean over pairs), never the oracle,
+    which trained on them; the unseen metrics are those of a study without them."""
+    own, same, stiffer = nodes_out
+    kw = dict(study="toy", pairs=[["A", "B"], ["B", "A"]], own=own,
+              transfer={"source=A,target=B": same, "source=B,target=A": stiffer},
+              markers=skins, test_indenters=["torus"], trace_frames=20)
+    plain = force_study(**kw)["metrics"]
+    out = force_study(**kw, seen_indenters=["sphere", "cone"])
+    m = out["metrics"]
+    assert {k: m[k] for k in plain} == plain
+    assert len(m) == len(plain) + 3 * 7 * 3                   # 3 methods x 7 metrics x (2 pairs + mean)
+    assert not any("oracle_seen" in k for k in m)
+    rows = np.flatnonzero(np.isin(skins["A"]["contact_id"], [0, 2, 4, 6, 8, 10]))  # sphere and cone
+    pred = predict_contacts(load_model(stiffer, "genforce_comp"), skins["A"]["images"][rows],
+                            skins["A"]["contact_id"][rows], skins["A"]["reference"])
+    want = force_metrics(pred, skins["A"]["force"][rows])
+    assert m["toy/B_A/genforce_comp_seen/mae_fz"] == pytest.approx(want["mae_fz"])
+    assert m["toy/B_A/genforce_comp_seen/r2_fx"] == pytest.approx(want["r2_fx"])
+    assert m["toy/B_A/genforce_comp_seen/mae_fz"] != pytest.approx(m["toy/B_A/genforce_comp/mae_fz"])
+    assert m["toy/mean/source_only_seen/mae_total"] == pytest.approx(
+        (m["toy/A_B/source_only_seen/mae_total"] + m["toy/B_A/source_only_seen/mae_total"]) / 2)
+    assert out["attrs"]["seen_frames"] == {"B": len(rows), "A": len(rows)}
+    assert bytes(out["figures"]["seen_unseen"][:8]) == PNG
+    with pytest.raises(ValueError, match=r"\['torus'\] are both seen and test indenters"):
+        force_study(**kw, seen_indenters=["sphere", "torus"])
