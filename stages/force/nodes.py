@@ -518,8 +518,8 @@ def _seen_unseen_png(metrics: Mapping[str, float], study: str):
         ax.tick_params(axis="y", labelsize=7)
         ax.set_title(f"MAE {'Ft (mean)' if comp == 'total' else 'F' + comp[1]} (N)", fontsize=9)
     fig.suptitle(f"{study}: seen vs unseen indenters (mean over pairs)", fontsize=9)
-    fig.tight_layout(rect=(0, 0, 1, 0.9))
-    fig.legend(*fig.axes[0].get_legend_handles_labels(), loc="upper left", ncol=3, fontsize=7,
+    fig.tight_layout(rect=(0, 0.08, 1, 0.95))
+    fig.legend(*fig.axes[0].get_legend_handles_labels(), loc="lower center", ncol=3, fontsize=7,
                frameon=False)
     from stages.figures import figure_png
     return figure_png(fig)
