@@ -25,6 +25,7 @@ FIGURES = {
     "markers-uskin.png": ("markers[skin=uskin-3axis]", "examples"),
     "sim-m2m-fid.png": ("sim_m2m", "fid"),
     "homo-radar.png": ("homo", "force_radar"),
+    "homo-seen.png": ("homo", "force_seen_unseen"),
     "material-trace.png": ("material", "force_trace"),
     "hetero-radar.png": ("hetero", "force_radar"),
     "control-grasp.png": ("control", "grasp_strawberry"),
