@@ -311,8 +311,9 @@ def force_study(*, study: str, pairs: Sequence[Sequence[str]], own: Mapping[str,
     with sd_<metric> their standard deviation (mean over pairs in `<study>/mean/` when every
     pair has them).  With `seen_indenters` (the training indenters), source_only, genforce and
     genforce_comp are also scored on the target's contacts of those: methods `<method>_seen`
-    (SEEN; the paper's seen / unseen split), figure seen_unseen.  Arrays mae/<method> (pairs, 4: fx, fy, fz, total), r2/<method> (pairs, 3), pairs
-    ("source_target"), sources, targets, trace/*; figures radar (MAE), r2_hist, trace, violin.
+    (SEEN; the paper's seen / unseen split), figure seen_unseen.  Arrays mae/<method> (pairs,
+    4: fx, fy, fz, total), r2/<method> (pairs, 3), pairs ("source_target"), sources, targets,
+    trace/*; figures radar (MAE), r2_hist, trace, violin.
     """
     from stages.common import torch_threads
     with torch_threads():
