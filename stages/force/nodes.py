@@ -353,16 +353,17 @@ def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_fra
             tests[t] = _test_set(markers[t], test_indenters)
         test = tests[t]
 
-        def predict(art, prefix):
-            return predict_contacts(load_model(art, prefix), test["images"], test["contact_id"],
-                                    test["reference"])
+        def predict(model, data):
+            return predict_contacts(model, data["images"], data["contact_id"], data["reference"])
 
         tr = transfer[f"source={s},target={t}"]
         if t not in oracle_pred:
-            oracle_pred[t] = predict(own[t], "weights")
-        preds = {"source_only": predict(own[s], "weights"), "genforce": predict(tr, "genforce")}
+            oracle_pred[t] = predict(load_model(own[t], "weights"), test)
         identical = bool(attrs_of(tr).get("compensation_identity", False))
-        preds["genforce_comp"] = preds["genforce"] if identical else predict(tr, "genforce_comp")
+        models = {"source_only": load_model(own[s], "weights"), "genforce": load_model(tr, "genforce")}
+        models["genforce_comp"] = models["genforce"] if identical else load_model(tr, "genforce_comp")
+        preds = {m: predict(models[m], test) for m in ("source_only", "genforce")}
+        preds["genforce_comp"] = preds["genforce"] if identical else predict(models["genforce_comp"], test)
         preds["oracle"] = oracle_pred[t]
         scores = {m: force_metrics(preds[m], test["force"]) for m in METHODS}
         for m in METHODS:
@@ -370,8 +371,8 @@ def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_fra
                 metrics[f"{study}/{s}_{t}/{m}/{k}"] = v
         members = _seed_models(seeds, s, t)
         if members:
-            runs = [scores["genforce_comp"]] + [force_metrics(predict(m, "genforce_comp"), test["force"])
-                                                for m in members]
+            runs = [scores["genforce_comp"]] + [
+                force_metrics(predict(load_model(m, "genforce_comp"), test), test["force"]) for m in members]
             for k in runs[0]:
                 values = [r[k] for r in runs]
                 metrics[f"{study}/{s}_{t}/{SEEDS}/{k}"] = float(np.mean(values))
@@ -380,12 +381,11 @@ def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_fra
             if t not in seen_sets:
                 seen_sets[t] = _test_set(markers[t], seen_indenters)
             seen = seen_sets[t]
-            seen_models = {"source_only": (own[s], "weights"), "genforce": (tr, "genforce"),
-                           "genforce_comp": (tr, "genforce" if identical else "genforce_comp")}
-            for m, (art, prefix) in seen_models.items():
-                pred = predict_contacts(load_model(art, prefix), seen["images"], seen["contact_id"],
-                                        seen["reference"])
-                for k, v in force_metrics(pred, seen["force"]).items():
+            seen_preds = {m: predict(models[m], seen) for m in ("source_only", "genforce")}
+            seen_preds["genforce_comp"] = (seen_preds["genforce"] if identical
+                                           else predict(models["genforce_comp"], seen))
+            for m in SEEN_METHODS:
+                for k, v in force_metrics(seen_preds[m], seen["force"]).items():
                     metrics[f"{study}/{s}_{t}/{m}{SEEN}/{k}"] = v
         labels = (compensated_test_labels(markers[s], tr, test_indenters, test["frame"])
                   if s in markers else None)
