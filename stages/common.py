@@ -28,6 +28,28 @@ def default_threads() -> int:
     return max(1, int(env)) if env else 1
 
 
+def torch_device():
+    """Where the networks train and predict in batches: $GENFORCE_DEVICE when set ("cpu",
+    "cuda", "cuda:1", ...), else the GPU when torch sees one, else the CPU.
+
+    A GPU's float arithmetic differs from the CPU's, so a model trained on one differs in its
+    last bits from one trained on the other; the store does not tell them apart.  Set
+    GENFORCE_DEVICE=cpu on a GPU machine to reproduce a CPU store's figures bit for bit."""
+    import torch
+    name = os.environ.get("GENFORCE_DEVICE", "").strip()
+    if not name:
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(name)
+    except RuntimeError as err:
+        raise ValueError(f"GENFORCE_DEVICE={name!r} is not a torch device (cpu, cuda, cuda:1, ...)") from err
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"GENFORCE_DEVICE={name!r} but torch sees no CUDA device on this machine")
+    if dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"GENFORCE_DEVICE={name!r}: only cpu and cuda devices are supported")
+    return dev
+
+
 @contextlib.contextmanager
 def torch_threads(n: int | None = None):
     """Run torch on `n` threads (default: :func:`default_threads`), restoring the setting afterwards."""

@@ -46,10 +46,10 @@ def inception_path() -> Path:
 @functools.lru_cache(maxsize=1)
 def inception():
     """The InceptionV3 feature network, loaded once per process (on the GPU when torch sees
-    one)."""
+    one; stages.common.torch_device)."""
     import torch
-    dev = "cuda" if torch.cuda.is_available() else "cpu"
-    return torch.jit.load(str(inception_path()), map_location=dev).eval()
+    from stages.common import torch_device
+    return torch.jit.load(str(inception_path()), map_location=torch_device()).eval()
 
 
 def preprocess(images):

@@ -269,14 +269,16 @@ def _reference_for(model: ForceRegressor, reference):
 
 @torch.no_grad()
 def predict_sequence(model: ForceRegressor, images, reference=None, *, chunk: int = 256) -> np.ndarray:
-    """Forces (T,3) N for one contact sequence (T,H,W), GRU state from zeros at frame 0."""
+    """Forces (T,3) N for one contact sequence (T,H,W), GRU state from zeros at frame 0, on the
+    model's device."""
     model.eval()
     ref = _reference_for(model, reference)
+    dev = model.force_min.device
     images = np.asarray(images)
     out, h = [], None
     for a in range(0, len(images), chunk):
-        y, h = model(prepare(images[a:a + chunk], ref, model.config)[None], h)
-        out.append(model.denormalise(y[0]))
+        y, h = model(prepare(images[a:a + chunk], ref, model.config)[None].to(dev), h)
+        out.append(model.denormalise(y[0]).cpu())
     if not out:
         return np.zeros((0, 3), np.float32)
     return torch.cat(out).numpy().astype(np.float32)
@@ -285,7 +287,8 @@ def predict_sequence(model: ForceRegressor, images, reference=None, *, chunk: in
 @torch.no_grad()
 def predict_contacts(model: ForceRegressor, images, contact_id, reference=None, *,
                      batch: int = 16) -> np.ndarray:
-    """Forces (N,3) N for frames of many contacts, the state reset at every contact.
+    """Forces (N,3) N for frames of many contacts, the state reset at every contact, computed
+    on the model's device (load_model(..., device=)).
 
     Frames of one contact must be contiguous and in time order (as in a contact-sequence
     artifact).  Contacts are run side by side in batches, padded with their last frame;
@@ -293,6 +296,7 @@ def predict_contacts(model: ForceRegressor, images, contact_id, reference=None, 
     """
     model.eval()
     ref = _reference_for(model, reference)
+    dev = model.force_min.device
     contact_id = np.asarray(contact_id)
     starts = np.flatnonzero(np.r_[True, contact_id[1:] != contact_id[:-1]])
     ends = np.r_[starts[1:], contact_id.size]
@@ -301,8 +305,8 @@ def predict_contacts(model: ForceRegressor, images, contact_id, reference=None, 
         runs = list(zip(starts[i:i + batch], ends[i:i + batch]))
         length = max(e - s for s, e in runs)
         x = torch.stack([_pad(prepare(np.asarray(images[s:e]), ref, model.config), length)
-                         for s, e in runs])
-        y = model.denormalise(model(x)[0]).numpy()
+                         for s, e in runs]).to(dev)
+        y = model.denormalise(model(x)[0]).cpu().numpy()
         for k, (s, e) in enumerate(runs):
             out[s:e] = y[k, :e - s]
     return out
@@ -407,13 +411,14 @@ def _stored_arrays(art, prefix: str) -> dict:
     return out
 
 
-def load_model(art, prefix: str = "weights") -> ForceRegressor:
+def load_model(art, prefix: str = "weights", device=None) -> ForceRegressor:
     """The regressor stored in an own ("weights") or transfer ("genforce", "genforce_comp")
-    artifact, or in such a node's output dict; eval mode."""
+    artifact, or in such a node's output dict; eval mode, on `device` (default the CPU)."""
     config = attrs_of(art).get("config")
     if config is None:
         raise KeyError("the artifact has no attrs['config'] for its force model")
-    return from_arrays(_stored_arrays(art, prefix), config)
+    model = from_arrays(_stored_arrays(art, prefix), config)
+    return model.to(device) if device is not None else model
 
 
 def load_predictor(art, prefix: str = "weights", reference=None) -> StreamingPredictor:

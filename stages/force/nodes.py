@@ -333,8 +333,14 @@ def _seed_models(seeds: Mapping[str, Mapping], source: str, target: str) -> list
 
 def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_frames, seeds,
                  seen_indenters) -> dict:
+    from stages.common import torch_device
     from stages.force.metrics import METRICS, force_metrics
-    from stages.force.model import load_model, predict_contacts
+    from stages.force.model import load_model as load_on_cpu, predict_contacts
+    dev = torch_device()
+
+    def load_model(art, prefix):          # batch prediction runs where training does
+        return load_on_cpu(art, prefix, device=dev)
+
     pairs = [(str(s), str(t)) for s, t in pairs]
     if not pairs:
         raise ValueError(f"force_study[{study}]: no pairs")

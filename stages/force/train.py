@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from stages.common import torch_threads
+from stages.common import torch_device, torch_threads
 from stages.force.model import (ForceRegressor, from_arrays, model_config, prepare, resolve_range,
                                 to_arrays)
 
@@ -85,7 +85,8 @@ def fit(sequences: list[ContactSequence], config: Mapping | None = None, *, step
         batch_size: int, lr: float, seed: int = 0, seq_len: int = 32, init: Mapping | None = None,
         momentum: float = 0.9, weight_decay: float = 5e-4, threads: int | None = None,
         desc: str = "force fit") -> tuple[ForceRegressor, dict]:
-    """Train a regressor; returns (model in eval mode, history).
+    """Train a regressor; returns (model in eval mode, on the CPU, history).  It trains on
+    stages.common.torch_device (the GPU when torch sees one).
 
     ``init`` is a :func:`to_arrays` dict to start from (fine-tuning); its config must equal
     ``config``.  An "auto" force range is set from the sequences' labels (model.resolve_range).
@@ -104,6 +105,8 @@ def fit(sequences: list[ContactSequence], config: Mapping | None = None, *, step
     lo, hi = np.asarray(config["force_min"]), np.asarray(config["force_max"])
     clipped = float(np.mean(np.any((all_force < lo) | (all_force > hi), axis=1)))
     targets = [model.normalise(s.force) for s in sequences]
+    dev = torch_device()
+    model.to(dev)
     opt = torch.optim.SGD(model.parameters(), lr=lr, momentum=momentum, weight_decay=weight_decay)
     losses, frames = [], 0
     t0 = time.perf_counter()
@@ -113,6 +116,7 @@ def fit(sequences: list[ContactSequence], config: Mapping | None = None, *, step
             for group in opt.param_groups:
                 group["lr"] = _lr_at(step, steps, lr)
             x, y = _batch(rng, sequences, targets, batch_size, seq_len)
+            x, y = x.to(dev), y.to(dev)
             pred, _ = model(x)
             loss = torch.nn.functional.l1_loss(pred, y)
             opt.zero_grad(set_to_none=True)
@@ -122,7 +126,7 @@ def fit(sequences: list[ContactSequence], config: Mapping | None = None, *, step
             losses.append(loss.item())
             frames += x.shape[0] * x.shape[1]
     seconds = time.perf_counter() - t0
-    model.eval()
+    model.cpu().eval()
     history = {"loss": losses, "seconds": seconds, "steps": int(steps),
                "samples_per_s": steps * batch_size / seconds if seconds > 0 else 0.0,
                "frames_per_s": frames / seconds if seconds > 0 else 0.0,

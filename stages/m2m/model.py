@@ -47,14 +47,15 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from stages.common import attrs_of
+from stages.common import attrs_of, torch_device
 
 NOISE_SEED = 1234          # seed of the multi-step sampler's noise maps (NOISE_SEED + step)
 
 
 def device() -> torch.device:
-    """Where the networks run: the GPU when torch sees one (paper profile), else the CPU."""
-    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    """Where the networks run: the GPU when torch sees one (paper profile), else the CPU
+    (stages.common.torch_device: $GENFORCE_DEVICE chooses)."""
+    return torch_device()
 
 
 def default_config(*, size=(128, 128), width: int = 16, timesteps: int = 1000,

@@ -11,3 +11,28 @@ def test_split_timing_moves_only_timings_at_every_depth():
                     "genforce": {"pretrain": {"loss": [1.0], "contacts": 9}, "finetune": {"loss": [0.5]}}}
     assert timing == {"seconds": 4.5, "genforce": {"pretrain": {"frames_per_s": 80.0}}}
     assert history["seconds"] == 4.5                                   # the input is left alone
+
+
+def test_torch_device_follows_GENFORCE_DEVICE_and_names_a_bad_one(monkeypatch):
+    import pytest
+    import torch
+    from stages.common import torch_device
+    from stages.m2m.model import device
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.delenv("GENFORCE_DEVICE", raising=False)
+    assert torch_device() == torch.device("cpu") == device()
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert torch_device() == torch.device("cuda") == device()          # a GPU is used when seen
+    monkeypatch.setenv("GENFORCE_DEVICE", "cpu")
+    assert torch_device() == torch.device("cpu")                       # ... unless told otherwise
+    monkeypatch.setenv("GENFORCE_DEVICE", "cuda:1")
+    assert torch_device() == torch.device("cuda", 1)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ValueError, match=r"GENFORCE_DEVICE='cuda:1' but torch sees no CUDA device"):
+        torch_device()
+    monkeypatch.setenv("GENFORCE_DEVICE", "gpu0")
+    with pytest.raises(ValueError, match=r"GENFORCE_DEVICE='gpu0' is not a torch device"):
+        torch_device()
+    monkeypatch.setenv("GENFORCE_DEVICE", "meta")
+    with pytest.raises(ValueError, match=r"GENFORCE_DEVICE='meta': only cpu and cuda"):
+        torch_device()
