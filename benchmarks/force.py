@@ -3,6 +3,9 @@
 Run: python benchmarks/force.py [--steps 40] [--config '{"input_size": 64}'] [--quick]   (< 2 min, 2 cores;
 --quick: 10 training steps, one thread)
 
+Training runs where the pipeline's does (stages.common.torch_device: the GPU when torch sees
+one; GENFORCE_DEVICE=cpu on a GPU machine for the CPU figures); prediction runs on the CPU.
+
 Data: 30 contact sequences of 50 frames of 128x128 uint8 0/255 marker-like images (random
 dots; the speed does not depend on the content), the default-profile size.  Columns are
 torch thread counts.  Rows:
@@ -31,7 +34,7 @@ import torch                                                                    
 from benchmarks.summary import record                                           # noqa: E402
 from stages.force.model import (MeanPredictor, StreamingPredictor, model_config,  # noqa: E402
                                 predict_contacts)
-from stages.common import torch_threads                                         # noqa: E402
+from stages.common import torch_device, torch_threads                           # noqa: E402
 from stages.force.train import fit, make_sequences                              # noqa: E402
 
 SENSOR_HZ = 40.0
@@ -95,7 +98,7 @@ def main():
     config = model_config(json.loads(args.config))
     threads = [int(t) for t in args.threads.split(",")]
     print(f"config: {json.dumps(config)}")
-    print(f"torch {torch.__version__}, {os.cpu_count()} CPUs")
+    print(f"torch {torch.__version__}, {os.cpu_count()} CPUs, training on {torch_device()}")
     cols = {t: bench(t, config, args.steps) for t in threads}
     rows = list(next(iter(cols.values())))
     print(f"{'':20s}" + "".join(f"{f'threads={t}':>12s}" for t in threads))

@@ -27,7 +27,7 @@ import torch                                                                # no
 from benchmarks.summary import record                                      # noqa: E402
 from stages.imagemetrics import inception_features                         # noqa: E402
 from stages.m2m.flow import MarkerFlow, warp                                # noqa: E402
-from stages.m2m.model import Translator, build, default_config, state_arrays  # noqa: E402
+from stages.m2m.model import Translator, build, default_config, device, state_arrays  # noqa: E402
 from stages.m2m.train import PairBatches, fit                              # noqa: E402
 from stages.markers.patterns import MarkerSet, pattern, rasterize           # noqa: E402
 
@@ -85,7 +85,7 @@ def main():
     if args.threads:
         torch.set_num_threads(args.threads)
     size, n = args.size, args.images
-    print(f"M2M on CPU, {size}x{size}, torch threads {torch.get_num_threads()}")
+    print(f"M2M on {device()}, {size}x{size}, torch threads {torch.get_num_threads()}")
     refs, frames = zip(*[marker_images(p, 32, size, seed=i) for i, p in enumerate(("Array2", "Circle2"))])
     images = np.stack(frames)
     src = np.concatenate([images[0]] * (n // 32 + 1))[:n]
