@@ -28,6 +28,12 @@ def default_threads() -> int:
     return max(1, int(env)) if env else 1
 
 
+class DeviceChoiceError(ValueError):
+    """$GENFORCE_DEVICE names no device this machine has: the engine reports it in one line
+    (exit 2), like bad input, rather than as a node's crash."""
+    user_error = True
+
+
 def torch_device():
     """Where the networks train and predict in batches: $GENFORCE_DEVICE when set ("cpu",
     "cuda", "cuda:1", ...), else the GPU when torch sees one, else the CPU.
@@ -42,11 +48,11 @@ def torch_device():
     try:
         dev = torch.device(name)
     except RuntimeError as err:
-        raise ValueError(f"GENFORCE_DEVICE={name!r} is not a torch device (cpu, cuda, cuda:1, ...)") from err
+        raise DeviceChoiceError(f"GENFORCE_DEVICE={name!r} is not a torch device (cpu, cuda, cuda:1, ...)") from err
     if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"GENFORCE_DEVICE={name!r} but torch sees no CUDA device on this machine")
+        raise DeviceChoiceError(f"GENFORCE_DEVICE={name!r} but torch sees no CUDA device on this machine")
     if dev.type not in ("cpu", "cuda"):
-        raise ValueError(f"GENFORCE_DEVICE={name!r}: only cpu and cuda devices are supported")
+        raise DeviceChoiceError(f"GENFORCE_DEVICE={name!r}: only cpu and cuda devices are supported")
     return dev
 
 

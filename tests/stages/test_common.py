@@ -28,8 +28,9 @@ def test_torch_device_follows_GENFORCE_DEVICE_and_names_a_bad_one(monkeypatch):
     monkeypatch.setenv("GENFORCE_DEVICE", "cuda:1")
     assert torch_device() == torch.device("cuda", 1)
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    with pytest.raises(ValueError, match=r"GENFORCE_DEVICE='cuda:1' but torch sees no CUDA device"):
+    with pytest.raises(ValueError, match=r"GENFORCE_DEVICE='cuda:1' but torch sees no CUDA device") as err:
         torch_device()
+    assert err.value.user_error is True                 # the engine's one-line error, exit 2
     monkeypatch.setenv("GENFORCE_DEVICE", "gpu0")
     with pytest.raises(ValueError, match=r"GENFORCE_DEVICE='gpu0' is not a torch device"):
         torch_device()
