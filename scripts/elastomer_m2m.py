@@ -56,6 +56,8 @@ def main() -> None:
     ap.add_argument("--skins", nargs="+", default=["gelsight-r6", "gelsight-r10", "gelsight-r18"])
     ap.add_argument("--frames", type=int, default=200)
     args = ap.parse_args()
+    if args.frames < 1 or len(args.skins) < 2:
+        sys.exit(f"{TOOL}: --frames must be at least 1 and --skins name at least two skins")
     from stages.m2m.model import load_translator
     params = yaml.safe_load((REPO / "params.yaml").read_text())
     get = lambda inst: Artifact(artifact_path(args.store, inst, TOOL))  # noqa: E731
@@ -63,11 +65,11 @@ def main() -> None:
     markers = {s: get(f"markers[skin={s}]") for s in args.skins}
     first = markers[args.skins[0]]
     rows = np.concatenate([np.arange(a, b) for a, b in contact_runs(first, params["splits"]["test_indenters"])])
-    rows = rows[::max(1, rows.size // args.frames)]
+    rows = rows[np.unique(np.linspace(0, rows.size - 1, min(args.frames, rows.size)).round().astype(int))]
     images = paired_frames(markers, rows)
     refs = {s: np.asarray(art["reference"]) for s, art in markers.items()}
-    print(f"{rows.size} test frames; reference pixels that differ from {args.skins[0]}'s: "
-          + ", ".join(f"{s} {int((refs[s] != refs[args.skins[0]]).sum())}" for s in args.skins))
+    print(f"{rows.size} test frames; reference pixels that differ: "
+          + ", ".join(f"{a} vs {b} {int((refs[a] != refs[b]).sum())}" for a, b in combinations(args.skins, 2)))
     for source in args.skins:
         out = {t: translator.translate(images[source], refs[source], refs[t]) for t in args.skins}
         print(f"source {source}:")

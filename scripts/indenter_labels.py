@@ -18,6 +18,7 @@ which stages.force.compensation.fit_curves refuses; those are fitted with non-ne
 coefficients instead (the force of a sphere grows as d^1.5, of a cone as d^2).
 """
 import argparse
+import functools
 import subprocess
 import sys
 from pathlib import Path
@@ -56,6 +57,7 @@ def _nonnegative_curves(cal) -> Curves:
     return Curves(fit(press), fit(release), gain)
 
 
+@functools.lru_cache(maxsize=None)
 def shape_curves(store: str, sensor: str, indenter: str) -> Curves:
     instance, param = f"calibrate[sensor={sensor}]", f"calibration_trajectory.indenter={indenter}"
     run = subprocess.run([sys.executable, "-m", "pipeline", "run", instance, "--store", store, "-p", param],
@@ -65,8 +67,22 @@ def shape_curves(store: str, sensor: str, indenter: str) -> Curves:
     cal = Artifact(artifact_path(store, instance, TOOL, (param,)))
     try:
         return curves_from_calibration(cal)
-    except ValueError:
+    except ValueError as err:
+        if "curve is not positive" not in str(err):
+            raise
+        print(f"{TOOL}: {sensor} pressed by {indenter}: {err}; fitted with non-negative terms",
+              file=sys.stderr)
         return _nonnegative_curves(cal)
+
+
+def restore_refs(store: str, sensors) -> None:
+    """`pipeline run` under -p leaves the store's refs of calibration_trajectory and calibrate
+    at the last indenter's artifacts: run them once more as params.yaml has them (cached)."""
+    targets = ["calibration_trajectory", *(f"calibrate[sensor={s}]" for s in sorted(sensors))]
+    run = subprocess.run([sys.executable, "-m", "pipeline", "run", *targets, "--store", store],
+                         cwd=REPO, capture_output=True, text=True)
+    if run.returncode:
+        sys.exit(f"{TOOL}: restoring the refs of {targets}: {run.stderr.strip() or run.stdout.strip()}")
 
 
 def r2_axes(true, pred) -> str:
@@ -84,40 +100,48 @@ def main() -> None:
     train_ind, test_ind = params["splits"]["train_indenters"], params["splits"]["test_indenters"]
     pairs = [p.split(":") for p in (args.pair or ["tactip:gelsight-A-II", "gelsight-A-II:tactip"])]
     get = lambda inst: Artifact(artifact_path(args.store, inst, TOOL))  # noqa: E731
-    for source, target in pairs:
-        tf, tr = get(f"transfer[source={source},target={target}]"), get(f"translate[source={source},target={target}]")
-        ms, mt = get(f"markers[skin={source}]"), get(f"markers[skin={target}]")
-        info = attrs_of(tf)
-        mode, k = info["compensation"], float(info["depth_ratio"])
-        punch = {side: Curves.from_dict(v) for side, v in info["curves"].items()}
-        sensors = {side: params["skins"][skin]["sensor"] for side, skin in (("source", source), ("target", target))}
-        shapes = {i: {side: shape_curves(args.store, sensors[side], i) for side in sensors} for i in train_ind}
+    try:
+        for source, target in pairs:
+            pair(args, params, get, source, target, train_ind, test_ind)
+    finally:
+        restore_refs(args.store, {params["skins"][skin]["sensor"] for p in pairs for skin in p})
 
-        def labels(art, rows=None):
-            """(uncompensated, punch, per-indenter) labels of an artifact's rows."""
-            rows = np.arange(len(np.asarray(art["force"]))) if rows is None else rows
-            force = np.asarray(art["force"], np.float32)[rows]
-            depth = np.asarray(art["normalised_depth"], float)[rows]
-            load = loading_mask(np.asarray(art["phase"])[rows])
-            names = indenter_names(art)[rows]
-            per = np.zeros_like(force)
-            for i, c in shapes.items():
-                m = names == i
-                per[m] = compensate(force[m], depth[m], load[m], c["source"], c["target"], mode=mode, depth_ratio=k)
-            return force, compensate(force, depth, load, punch["source"], punch["target"], mode=mode,
-                                     depth_ratio=k), per
 
-        rows_s = np.concatenate([np.arange(a, b) for a, b in contact_runs(ms, train_ind)])
-        rows_t = np.concatenate([np.arange(a, b) for a, b in contact_runs(mt, train_ind)])
-        if not np.array_equal(np.asarray(ms["frame"])[rows_s], np.asarray(mt["frame"])[rows_t]):
-            sys.exit(f"{TOOL}: {source} and {target} training frames are not location-paired")
-        truth = np.asarray(mt["force"], float)[rows_t]
-        raw, by_punch, by_shape = labels(ms, rows_s)
-        print(f"{source} -> {target} (mode {mode}, depth ratio {k:.2f}): label R2 Fx/Fy/Fz on the "
-              f"training indenters: none {r2_axes(truth, raw)}, punch {r2_axes(truth, by_punch)}, "
-              f"per indenter {r2_axes(truth, by_shape)}", flush=True)
-        if args.train:
-            train_model(params, tr, mt, labels(tr)[1:], train_ind, test_ind)
+def pair(args, params, get, source, target, train_ind, test_ind) -> None:
+    """Print one pair's label R2 (and with --train its models' scores)."""
+    tf, tr = get(f"transfer[source={source},target={target}]"), get(f"translate[source={source},target={target}]")
+    ms, mt = get(f"markers[skin={source}]"), get(f"markers[skin={target}]")
+    info = attrs_of(tf)
+    mode, k = info["compensation"], float(info["depth_ratio"])
+    punch = {side: Curves.from_dict(v) for side, v in info["curves"].items()}
+    sensors = {side: params["skins"][skin]["sensor"] for side, skin in (("source", source), ("target", target))}
+    shapes = {i: {side: shape_curves(args.store, sensors[side], i) for side in sensors} for i in train_ind}
+
+    def labels(art, rows=None):
+        """(uncompensated, punch, per-indenter) labels of an artifact's rows."""
+        rows = np.arange(len(np.asarray(art["force"]))) if rows is None else rows
+        force = np.asarray(art["force"], np.float32)[rows]
+        depth = np.asarray(art["normalised_depth"], float)[rows]
+        load = loading_mask(np.asarray(art["phase"])[rows])
+        names = indenter_names(art)[rows]
+        per = np.zeros_like(force)
+        for i, c in shapes.items():
+            m = names == i
+            per[m] = compensate(force[m], depth[m], load[m], c["source"], c["target"], mode=mode, depth_ratio=k)
+        return force, compensate(force, depth, load, punch["source"], punch["target"], mode=mode,
+                                 depth_ratio=k), per
+
+    rows_s = np.concatenate([np.arange(a, b) for a, b in contact_runs(ms, train_ind)])
+    rows_t = np.concatenate([np.arange(a, b) for a, b in contact_runs(mt, train_ind)])
+    if not np.array_equal(np.asarray(ms["frame"])[rows_s], np.asarray(mt["frame"])[rows_t]):
+        sys.exit(f"{TOOL}: {source} and {target} training frames are not location-paired")
+    truth = np.asarray(mt["force"], float)[rows_t]
+    raw, by_punch, by_shape = labels(ms, rows_s)
+    print(f"{source} -> {target} (mode {mode}, depth ratio {k:.2f}): label R2 Fx/Fy/Fz on the "
+          f"training indenters: none {r2_axes(truth, raw)}, punch {r2_axes(truth, by_punch)}, "
+          f"per indenter {r2_axes(truth, by_shape)}", flush=True)
+    if args.train:
+        train_model(params, tr, mt, labels(tr)[1:], train_ind, test_ind)
 
 
 def train_model(params, translated, target_markers, label_sets, train_ind, test_ind) -> None:

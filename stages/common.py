@@ -40,7 +40,8 @@ def torch_device():
 
     A GPU's float arithmetic differs from the CPU's, so a model trained on one differs in its
     last bits from one trained on the other; the store does not tell them apart.  Set
-    GENFORCE_DEVICE=cpu on a GPU machine to reproduce a CPU store's figures bit for bit."""
+    GENFORCE_DEVICE=cpu on a GPU machine to train as a CPU machine does (bit for bit where the
+    CPU type and the torch build are the same too)."""
     import torch
     name = os.environ.get("GENFORCE_DEVICE", "").strip()
     if not name:
@@ -51,6 +52,9 @@ def torch_device():
         raise DeviceChoiceError(f"GENFORCE_DEVICE={name!r} is not a torch device (cpu, cuda, cuda:1, ...)") from err
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise DeviceChoiceError(f"GENFORCE_DEVICE={name!r} but torch sees no CUDA device on this machine")
+    if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
+        raise DeviceChoiceError(f"GENFORCE_DEVICE={name!r} but torch sees {torch.cuda.device_count()} "
+                                f"CUDA device(s) on this machine (cuda:0 .. cuda:{torch.cuda.device_count() - 1})")
     if dev.type not in ("cpu", "cuda"):
         raise DeviceChoiceError(f"GENFORCE_DEVICE={name!r}: only cpu and cuda devices are supported")
     return dev

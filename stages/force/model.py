@@ -262,7 +262,7 @@ def _reference_for(model: ForceRegressor, reference):
         return np.asarray(reference)
     if model.reference.numel() == 0:
         raise ValueError("no reference image: pass one, or set it with model.set_reference()")
-    return model.reference.numpy()
+    return model.reference.cpu().numpy()
 
 
 # ---------------------------------------------------------------------------- prediction
@@ -328,8 +328,9 @@ class StreamingPredictor:
 
     def __init__(self, model: ForceRegressor, reference=None):
         self.model = model.eval()
+        self._dev = model.force_min.device          # the model's device (a control loop's: the CPU)
         self._ref = _reference_for(model, reference)
-        self._ref_input = _resize(self._ref[None], model.config["input_size"])
+        self._ref_input = _resize(self._ref[None], model.config["input_size"]).to(self._dev)
         self.h = None
 
     def reset(self, reference=None) -> None:
@@ -337,7 +338,7 @@ class StreamingPredictor:
         self.h = None
         if reference is not None:
             self._ref = np.asarray(reference)
-            self._ref_input = _resize(self._ref[None], self.model.config["input_size"])
+            self._ref_input = _resize(self._ref[None], self.model.config["input_size"]).to(self._dev)
 
     @torch.no_grad()
     def step(self, image) -> np.ndarray:
@@ -345,13 +346,13 @@ class StreamingPredictor:
         image = np.asarray(image)
         if image.shape != self._ref.shape:
             raise ValueError(f"image {image.shape} does not match the reference {self._ref.shape}")
-        x = _resize(image[None], self.model.config["input_size"])
+        x = _resize(image[None], self.model.config["input_size"]).to(self._dev)
         if self.model.config["input_mode"] == "difference":
             x = x - self._ref_input
         else:
             x = torch.cat([x, self._ref_input], 1)
         y, self.h = self.model.step(x, self.h)
-        return self.model.denormalise(y[0]).numpy().astype(np.float32)
+        return self.model.denormalise(y[0]).cpu().numpy().astype(np.float32)
 
 
 class MeanPredictor:

@@ -25,8 +25,13 @@ def test_torch_device_follows_GENFORCE_DEVICE_and_names_a_bad_one(monkeypatch):
     assert torch_device() == torch.device("cuda") == device()          # a GPU is used when seen
     monkeypatch.setenv("GENFORCE_DEVICE", "cpu")
     assert torch_device() == torch.device("cpu")                       # ... unless told otherwise
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
     monkeypatch.setenv("GENFORCE_DEVICE", "cuda:1")
     assert torch_device() == torch.device("cuda", 1)
+    monkeypatch.setenv("GENFORCE_DEVICE", "cuda:2")
+    with pytest.raises(ValueError, match=r"'cuda:2' but torch sees 2 CUDA device\(s\) on this machine \(cuda:0 .. cuda:1\)"):
+        torch_device()
+    monkeypatch.setenv("GENFORCE_DEVICE", "cuda:1")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     with pytest.raises(ValueError, match=r"GENFORCE_DEVICE='cuda:1' but torch sees no CUDA device") as err:
         torch_device()
