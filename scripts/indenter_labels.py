@@ -9,7 +9,8 @@ calibration_trajectory.indenter=<name>`: one press each, run here if the store l
 compensates each training contact with its own indenter's curves.  It prints the R2 of the
 source's labels against the target's own force at the location-paired frames of the
 training indenters: uncompensated, with the punch (what `transfer` trains on) and per
-indenter.  With --train it also trains genforce_comp both ways (the transfer's config, steps
+indenter; and, per indenter, how large the translated contacts are against the target's own
+at the same frames (changed pixels), which says whose deformation a translation draws.  With --train it also trains genforce_comp both ways (the transfer's config, steps
 and seed) and scores the models on the target's unseen and seen indenters as the study does;
 the punch model reproduces the study's genforce_comp.
 
@@ -140,8 +141,30 @@ def pair(args, params, get, source, target, train_ind, test_ind) -> None:
     print(f"{source} -> {target} (mode {mode}, depth ratio {k:.2f}): label R2 Fx/Fy/Fz on the "
           f"training indenters: none {r2_axes(truth, raw)}, punch {r2_axes(truth, by_punch)}, "
           f"per indenter {r2_axes(truth, by_shape)}", flush=True)
+    print("  changed pixels a frame on deep presses (phase 0, normalised depth > 0.7), translated"
+          " / the target's own at the paired frames: "
+          + ", ".join(f"{i} {r:.2f}" for i, r in contact_sizes(tr, mt, train_ind).items()), flush=True)
     if args.train:
         train_model(params, tr, mt, labels(tr)[1:], train_ind, test_ind)
+
+
+def contact_sizes(translated, target_markers, indenters) -> dict:
+    """Per indenter: the mean count of pixels a translated frame changes from its reference
+    over the count the target's own location-paired frame changes, on deep presses."""
+    def rows_of(art):
+        return np.concatenate([np.arange(a, b) for a, b in contact_runs(art, indenters)])
+    rs, rt = rows_of(translated), rows_of(target_markers)
+    if not np.array_equal(np.asarray(translated["frame"])[rs], np.asarray(target_markers["frame"])[rt]):
+        sys.exit(f"{TOOL}: the translations' frames are not the target's")
+    deep = (np.asarray(translated["phase"])[rs] == 0) & (np.asarray(translated["normalised_depth"])[rs] > 0.7)
+    names = indenter_names(translated)[rs][deep]
+
+    def changed(art, rows):
+        ref = np.asarray(art["reference"])
+        return np.array([(np.asarray(art["images"][r]) != ref).sum() for r in rows], float)
+    mine, theirs = changed(translated, rs[deep]), changed(target_markers, rt[deep])
+    return {i: mine[names == i].mean() / max(theirs[names == i].mean(), 1.0)
+            for i in indenters if (names == i).any()}
 
 
 def train_model(params, translated, target_markers, label_sets, train_ind, test_ind) -> None:
