@@ -54,4 +54,9 @@ def transfer_study(*, study: str, groups: Mapping[str, list], features: Mapping,
                **{f"force_{k}": v for k, v in force.pop("figures").items()}}
     attrs = {"images": images.pop("attrs"), "force": force.pop("attrs"),
              "groups": {g: [f"{s}_{t}" for s, t in p] for g, p in groups.items()}}
-    return {"images": images, "force": force, "figures": figures, "metrics": metrics, "attrs": attrs}
+    # the parts' timings go to the provenance with the node's, not into its content: a re-run
+    # that scores the same at another speed must give the same artifact (early cutoff)
+    timing = {part: t for part, t in (("images", images.pop("timing", None)),
+                                      ("force", force.pop("timing", None))) if t}
+    return {"images": images, "force": force, "figures": figures, "metrics": metrics, "attrs": attrs,
+            "timing": timing}

@@ -13,3 +13,32 @@ def test_group_means_average_each_groups_pairs():
     assert out == {"material/hard_to_soft/genforce/mae_fz": pytest.approx(2.0),
                    "material/hard_to_soft/oracle/r2_fz": pytest.approx(0.75),
                    "material/soft_to_hard/genforce/mae_fz": pytest.approx(0.5)}
+
+
+def test_transfer_study_keeps_its_parts_timings_out_of_the_content(monkeypatch):
+    """image_study reports its seconds; in the study they belong to the provenance ("timing"),
+    or every re-run would write a different artifact and never cut off downstream."""
+    import stages.force.nodes as force_nodes
+    import stages.m2m.nodes as m2m_nodes
+    from stages.studies import transfer_study
+    seen = {}
+
+    def image_study(**kw):
+        seen["image_pairs"] = kw["pairs"]
+        return {"fid": [[1.0]], "figures": {"fid": b"png"}, "metrics": {"s/mean/m2m/fid": 2.0},
+                "attrs": {"pairs": len(kw["pairs"])}, "timing": {"seconds": 4.25}}
+
+    def force_study(**kw):
+        return {"mae": [[0.5]], "figures": {"radar": b"png"}, "metrics": {"s/a_b/genforce/mae_total": 0.5,
+                                                                        "s/b_a/genforce/mae_total": 1.5},
+                "attrs": {"study": "s"}}
+    monkeypatch.setattr(m2m_nodes, "image_study", image_study)
+    monkeypatch.setattr(force_nodes, "force_study", force_study)
+    out = transfer_study(study="s", groups={"one": [["a", "b"]], "two": [["b", "a"], ["a", "b"]]},
+                         features={}, translated={}, warped={}, own={}, transfer={}, markers={},
+                         test_indenters=["x"], kid_subset=2, trace_frames=10)
+    assert seen["image_pairs"] == [["a", "b"], ["b", "a"]]          # a pair in two groups, once
+    assert out["images"] == {"fid": [[1.0]]} and out["force"] == {"mae": [[0.5]]}
+    assert out["timing"] == {"images": {"seconds": 4.25}}
+    assert out["figures"] == {"images_fid": b"png", "force_radar": b"png"}
+    assert out["metrics"]["s/two/genforce/mae_total"] == 1.0 and out["metrics"]["s/one/genforce/mae_total"] == 0.5
