@@ -1,4 +1,5 @@
 """Helpers shared by test folders (a plain module: `conftest` names clash across folders)."""
+import importlib.util
 from pathlib import Path
 
 import numpy as np
@@ -42,3 +43,11 @@ def load_params(profile: str | None = None) -> dict:
     if profile:
         _merge(params, yaml.safe_load((ROOT / "params" / f"{profile}.yaml").read_text()))
     return params
+
+
+def load_script(name: str):
+    """A script of scripts/ (not a package) imported as a module, to test its functions."""
+    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

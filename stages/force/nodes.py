@@ -335,11 +335,14 @@ def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_fra
                  seen_indenters) -> dict:
     from stages.common import torch_device
     from stages.force.metrics import METRICS, force_metrics
-    from stages.force.model import load_model as load_on_cpu, predict_contacts
+    from stages.force.model import load_model, predict_contacts
     dev = torch_device()
 
-    def load_model(art, prefix):          # batch prediction runs where training does
-        return load_on_cpu(art, prefix, device=dev)
+    def load(art, prefix):                # batch prediction runs where training does
+        return load_model(art, prefix, device=dev)
+
+    def predict(model, data):
+        return predict_contacts(model, data["images"], data["contact_id"], data["reference"])
 
     pairs = [(str(s), str(t)) for s, t in pairs]
     if not pairs:
@@ -358,16 +361,12 @@ def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_fra
         if t not in tests:
             tests[t] = _test_set(markers[t], test_indenters)
         test = tests[t]
-
-        def predict(model, data):
-            return predict_contacts(model, data["images"], data["contact_id"], data["reference"])
-
         tr = transfer[f"source={s},target={t}"]
         if t not in oracle_pred:
-            oracle_pred[t] = predict(load_model(own[t], "weights"), test)
+            oracle_pred[t] = predict(load(own[t], "weights"), test)
         identical = bool(attrs_of(tr).get("compensation_identity", False))
-        models = {"source_only": load_model(own[s], "weights"), "genforce": load_model(tr, "genforce")}
-        models["genforce_comp"] = models["genforce"] if identical else load_model(tr, "genforce_comp")
+        models = {"source_only": load(own[s], "weights"), "genforce": load(tr, "genforce")}
+        models["genforce_comp"] = models["genforce"] if identical else load(tr, "genforce_comp")
         preds = {m: predict(models[m], test) for m in ("source_only", "genforce")}
         preds["genforce_comp"] = preds["genforce"] if identical else predict(models["genforce_comp"], test)
         preds["oracle"] = oracle_pred[t]
@@ -378,7 +377,7 @@ def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_fra
         members = _seed_models(seeds, s, t)
         if members:
             runs = [scores["genforce_comp"]] + [
-                force_metrics(predict(load_model(m, "genforce_comp"), test), test["force"]) for m in members]
+                force_metrics(predict(load(m, "genforce_comp"), test), test["force"]) for m in members]
             for k in runs[0]:
                 values = [r[k] for r in runs]
                 metrics[f"{study}/{s}_{t}/{SEEDS}/{k}"] = float(np.mean(values))

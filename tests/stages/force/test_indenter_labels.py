@@ -1,21 +1,14 @@
 """scripts/indenter_labels.py: the calibration fit it falls back on for curved indenters."""
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from stages.force.compensation import curves_from_calibration
-
-SCRIPT = Path(__file__).resolve().parents[3] / "scripts" / "indenter_labels.py"
+from tests.helpers import load_script
 
 
 @pytest.fixture(scope="module")
 def script():
-    spec = importlib.util.spec_from_file_location("indenter_labels", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("indenter_labels")
 
 
 def cone_calibration(c=3.0, gain=0.4):

@@ -1,19 +1,13 @@
 """scripts/elastomer_m2m.py: location pairing of skins' frames and the pixel count."""
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[3] / "scripts" / "elastomer_m2m.py"
+from tests.helpers import load_script
 
 
 @pytest.fixture(scope="module")
 def script():
-    spec = importlib.util.spec_from_file_location("elastomer_m2m", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("elastomer_m2m")
 
 
 def test_frames_are_paired_by_label_not_by_row(script):

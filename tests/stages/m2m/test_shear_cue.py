@@ -1,21 +1,16 @@
 """scripts/shear_cue.py: the shear cue of taxel images, on dots drawn with a known response."""
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[3] / "scripts" / "shear_cue.py"
+from tests.helpers import load_script
+
 SIZE = 64
 CENTRES = [(8 + 16 * r, 8 + 16 * c) for r in range(4) for c in range(4)]
 
 
 @pytest.fixture(scope="module")
 def shear_cue():
-    spec = importlib.util.spec_from_file_location("shear_cue", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("shear_cue")
 
 
 def draw(shift=0, left=1, right=1):
