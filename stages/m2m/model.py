@@ -124,7 +124,7 @@ class M2MNet(nn.Module):
 
     def embed_time(self, t: torch.Tensor) -> torch.Tensor:
         half = self.width // 2
-        freqs = torch.exp(-math.log(10000.0) * torch.arange(half, dtype=torch.float32) / half)
+        freqs = torch.exp(-math.log(10000.0) * torch.arange(half, dtype=torch.float32, device=t.device) / half)
         ang = t.float()[:, None] * freqs[None]
         return self.time(torch.cat([ang.sin(), ang.cos()], dim=1))
 
