@@ -7,6 +7,7 @@ import pytest
 import torch
 from sklearn.metrics import mean_absolute_error, r2_score
 
+from stages.common import torch_device
 from stages.force.compensation import (Curves, compensate, fit_curves, label_scale, loading_mask,
                                        shear_ratio)
 from stages.force.metrics import METRICS, force_metrics
@@ -474,9 +475,9 @@ def test_force_study_seeds_average_genforce_comp_over_the_seed_models(nodes_out,
                     transfer={"source=A,target=B": same, "source=B,target=A": stiffer},
                     markers=skins, test_indenters=["torus"], trace_frames=20, seeds=seeds)["metrics"]
     rows = np.flatnonzero(np.isin(skins["B"]["contact_id"], [3, 7, 11]))     # the torus contacts
-    other = force_metrics(predict_contacts(load_model(stiffer, "genforce_comp"), skins["B"]["images"][rows],
-                                           skins["B"]["contact_id"][rows], skins["B"]["reference"]),
-                          skins["B"]["force"][rows])
+    model = load_model(stiffer, "genforce_comp", device=torch_device())    # where force_study predicts
+    other = force_metrics(predict_contacts(model, skins["B"]["images"][rows], skins["B"]["contact_id"][rows],
+                                           skins["B"]["reference"]), skins["B"]["force"][rows])
     base = m["toy/A_B/genforce_comp/mae_total"]
     assert other["mae_total"] != pytest.approx(base)
     assert m["toy/A_B/genforce_comp_seeds/mae_total"] == pytest.approx((2 * base + other["mae_total"]) / 3)
@@ -502,7 +503,7 @@ def test_force_study_scores_the_seen_indenters_too(nodes_out, skins):
     assert len(m) == len(plain) + 3 * 7 * 3                   # 3 methods x 7 metrics x (2 pairs + mean)
     assert not any("oracle_seen" in k for k in m)
     rows = np.flatnonzero(np.isin(skins["A"]["contact_id"], [0, 2, 4, 6, 8, 10]))  # sphere and cone
-    pred = predict_contacts(load_model(stiffer, "genforce_comp"), skins["A"]["images"][rows],
+    pred = predict_contacts(load_model(stiffer, "genforce_comp", device=torch_device()), skins["A"]["images"][rows],
                             skins["A"]["contact_id"][rows], skins["A"]["reference"])
     want = force_metrics(pred, skins["A"]["force"][rows])
     assert m["toy/B_A/genforce_comp_seen/mae_fz"] == pytest.approx(want["mae_fz"])
