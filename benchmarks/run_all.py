@@ -1,6 +1,7 @@
 """Run every benchmark, then print one table of the figures they recorded.
 
-Run: python benchmarks/run_all.py [--quick] [NAME ...]   (`make bench`; NAME: e.g. engine render)
+Run: python benchmarks/run_all.py [--quick] [NAME ...]   (`make bench`; NAME: e.g. engine render;
+gpu, the GPU against the CPU at the paper's sizes, runs by default only where torch sees a GPU)
 
 Each script runs as a subprocess, in order, its own output streamed as it comes; `--quick` is
 passed on to the scripts that take it.  Each script records its ratios and targeted figures
@@ -23,7 +24,13 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-BENCHMARKS = ("engine", "contact", "render", "m2m", "force", "capture", "control")
+BENCHMARKS = ("engine", "contact", "render", "m2m", "force", "capture", "control", "gpu")
+ONLY_WITH_CUDA = ("gpu",)     # left out of the default list where torch sees no GPU
+
+
+def cuda_present() -> bool:
+    import torch
+    return torch.cuda.is_available()
 TARGET = re.compile(r"^\s*(>=|<=)\s*([-+0-9.eE]+)\s*$")
 
 
@@ -69,7 +76,7 @@ def main() -> int:
     unknown = [n for n in args.names if n not in BENCHMARKS]
     if unknown:
         ap.error(f"unknown benchmark {unknown[0]!r}; choose from {', '.join(BENCHMARKS)}")
-    names = args.names or list(BENCHMARKS)
+    names = args.names or [n for n in BENCHMARKS if n not in ONLY_WITH_CUDA or cuda_present()]
     rows, walls, failed = [], [], False
     with tempfile.TemporaryDirectory() as tmp:
         for name in names:
