@@ -26,12 +26,12 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 BENCHMARKS = ("engine", "contact", "render", "m2m", "force", "capture", "control", "gpu")
 ONLY_WITH_CUDA = ("gpu",)     # left out of the default list where torch sees no GPU
+TARGET = re.compile(r"^\s*(>=|<=)\s*([-+0-9.eE]+)\s*$")
 
 
 def cuda_present() -> bool:
     import torch
     return torch.cuda.is_available()
-TARGET = re.compile(r"^\s*(>=|<=)\s*([-+0-9.eE]+)\s*$")
 
 
 def takes_quick(script: Path) -> bool:

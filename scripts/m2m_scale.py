@@ -83,6 +83,28 @@ def score(model, markers: dict, pairs: list, features: dict, params: dict, n_eva
                        kid_subset=kid_subset)["metrics"]
 
 
+def report(stored: dict, new: dict, stored_attrs: dict, new_attrs: dict, pairs: list) -> None:
+    """Per-pair and mean FID before / stored / new, and the mean FID and KID drops."""
+    def described(attrs):
+        return f"width {attrs['config']['width']}, {attrs['steps']} steps of {attrs.get('batch_size', '?')}"
+
+    def ratio(before, after):
+        return f"{before / after:.1f}x" if after > 0 else "at the noise floor"
+
+    print(f"\n{'pair':22s} {'before':>9s} {'stored':>9s} {'new':>9s}   (FID; stored: {described(stored_attrs)}; "
+          f"new: {described(new_attrs)})")
+    for s, t in list(pairs) + [("mean", None)]:
+        key = "sim-m2m/mean" if t is None else f"sim-m2m/{s}_{t}"
+        name = "mean" if t is None else f"{s}->{t}"
+        print(f"{name:22s} {stored[f'{key}/before/fid']:9.2f} {stored[f'{key}/m2m/fid']:9.2f} "
+              f"{new[f'{key}/m2m/fid']:9.2f}")
+    m = "sim-m2m/mean"
+    for what in ("fid", "kid"):
+        b, old, now = stored[f"{m}/before/{what}"], stored[f"{m}/m2m/{what}"], new[f"{m}/m2m/{what}"]
+        print(f"mean {what.upper()}: before {b:.4g}, stored {old:.4g} ({ratio(b, old)}), "
+              f"new {now:.4g} ({ratio(b, now)})")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--store", default="artifacts")
@@ -128,23 +150,10 @@ def main() -> None:
     stored_attrs = attrs_of(baseline)
     stored = score(baseline, markers, pairs, features, params, args.n_eval, args.kid_subset)
     new = score(model, markers, pairs, features, params, args.n_eval, args.kid_subset)
-    cfg = model["attrs"]["config"]
-    print(f"\n{'pair':22s} {'before':>9s} {'stored':>9s} {'new':>9s}   (FID; stored: width "
-          f"{stored_attrs['config']['width']}, {stored_attrs['steps']} steps; new: width {cfg['width']}, {model['attrs']['steps']} steps)")
-    for s, t in pairs + [("mean", None)]:
-        key = "sim-m2m/mean" if t is None else f"sim-m2m/{s}_{t}"
-        name = "mean" if t is None else f"{s}->{t}"
-        print(f"{name:22s} {stored[f'{key}/before/fid']:9.2f} {stored[f'{key}/m2m/fid']:9.2f} {new[f'{key}/m2m/fid']:9.2f}")
-    m = "sim-m2m/mean"
-    for what in ("fid", "kid"):
-        b = stored[f"{m}/before/{what}"]
-        print(f"mean {what.upper()}: before {b:.4g}, stored {stored[f'{m}/m2m/{what}']:.4g} "
-              f"({b / stored[f'{m}/m2m/{what}']:.1f}x), new {new[f'{m}/m2m/{what}']:.4g} "
-              f"({b / new[f'{m}/m2m/{what}']:.1f}x)")
+    report(stored, new, stored_attrs, model["attrs"], pairs)
     if args.json:
-        Path(args.json).write_text(json.dumps({"stored": stored, "new": new,
-                                               "new_attrs": model["attrs"], "n_eval": args.n_eval}, indent=1,
-                                              default=str))
+        Path(args.json).write_text(json.dumps({"stored": stored, "new": new, "new_attrs": model["attrs"],
+                                               "n_eval": args.n_eval}, indent=1, default=str))
 
 
 if __name__ == "__main__":

@@ -38,3 +38,21 @@ def test_bad_arguments_are_one_line_errors(script, monkeypatch, argv, message):
     monkeypatch.setattr(sys, "argv", ["m2m_scale.py", *argv])
     with pytest.raises(SystemExit, match=message):
         script.main()
+
+
+def test_report_prints_each_pair_the_mean_and_the_drops(script, capsys):
+    pairs = [("A", "B"), ("B", "A")]
+    stored, new = {}, {}
+    for (s, t), before, old, now in ((("A", "B"), 100.0, 5.0, 2.0), (("B", "A"), 300.0, 15.0, 1.0)):
+        stored[f"sim-m2m/{s}_{t}/before/fid"], stored[f"sim-m2m/{s}_{t}/m2m/fid"] = before, old
+        new[f"sim-m2m/{s}_{t}/m2m/fid"] = now
+    stored.update({"sim-m2m/mean/before/fid": 200.0, "sim-m2m/mean/m2m/fid": 10.0,
+                   "sim-m2m/mean/before/kid": 0.4, "sim-m2m/mean/m2m/kid": 0.01})
+    new.update({"sim-m2m/mean/m2m/fid": 1.5, "sim-m2m/mean/m2m/kid": -0.0002})
+    cfg = {"config": {"width": 12}, "steps": 800, "batch_size": 16}
+    script.report(stored, new, cfg, {"config": {"width": 32}, "steps": 12800, "batch_size": 32}, pairs)
+    out = capsys.readouterr().out
+    assert "stored: width 12, 800 steps of 16; new: width 32, 12800 steps of 32" in out
+    assert "B->A                      300.00     15.00      1.00" in out
+    assert "mean FID: before 200, stored 10 (20.0x), new 1.5 (133.3x)" in out
+    assert "mean KID: before 0.4, stored 0.01 (40.0x), new -0.0002 (at the noise floor)" in out
