@@ -35,6 +35,7 @@ sys.path.insert(0, str(REPO))
 import numpy as np                                                              # noqa: E402
 import torch                                                                    # noqa: E402
 
+from benchmarks.force import marker_like                                         # noqa: E402
 from benchmarks.m2m import marker_images                                        # noqa: E402
 from benchmarks.summary import record                                           # noqa: E402
 from pipeline.params import load as load_params                                 # noqa: E402
@@ -108,11 +109,8 @@ def force_part(steps: int, cpu_steps: int) -> dict:
     config = model_config({k: v for k, v in paper["config"].items() if k in DEFAULT_CONFIG})
     seq_len, batch = int(paper["config"]["seq_len"]), int(paper["batch_size"])
     rng = np.random.default_rng(0)
-    size, contacts, length = int(config["input_size"]), 16, 80
-    base = rng.random((size // 8, size // 8)) < 0.5
-    ref = np.kron(base, np.ones((8, 8), bool)).astype(np.uint8) * 255
-    shift = rng.integers(-3, 4, (contacts * length, 2))
-    images = np.stack([np.roll(ref, tuple(s), (0, 1)) for s in shift])
+    contacts, length = 16, 80
+    images, ref = marker_like(rng, contacts * length, int(config["input_size"]))
     forces = rng.uniform(-4, 0, (contacts * length, 3)).astype(np.float32)
     seqs = make_sequences(np.split(images, contacts), np.split(forces, contacts), ref, config)
     out = {"batch": batch, "seq_len": seq_len}

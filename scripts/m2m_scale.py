@@ -25,21 +25,13 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "scripts"))
 
+from benchmarks.summary import drain  # noqa: E402
 from pipeline.artifact import Artifact  # noqa: E402
 from pipeline.params import load as load_params  # noqa: E402
 from stages.common import attrs_of, torch_device  # noqa: E402
 from stages.m2m.nodes import image_features, image_study, pair_label, pretrain, translate_sequence  # noqa: E402
 
 TOOL = "m2m_scale"
-
-
-def drain(gen):
-    """A streaming node's return value (its chunks dropped)."""
-    while True:
-        try:
-            next(gen)
-        except StopIteration as stop:
-            return stop.value
 
 
 def open_inputs(args, skins: list[str]) -> tuple[dict, object]:
