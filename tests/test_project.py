@@ -36,7 +36,8 @@ def test_profiles_load(profile):
 
 
 def test_allpairs_adds_pairs_and_changes_nothing_else():
-    """The allpairs profile runs every ordered pair of the default profile's twins; every node
+    """The allpairs profile runs every ordered pair of the 12 simulation patterns and of the
+    default profile's twins; every node
     instance the default has keeps its params there (so a default store serves it), except the
     studies, whose pair lists grow."""
     from itertools import permutations
@@ -44,7 +45,7 @@ def test_allpairs_adds_pairs_and_changes_nothing_else():
     graph = project.load_graph()
     base = graph.expand(P.load(project.params_file, None, [], project.profiles_dir))
     every = graph.expand(P.load(project.params_file, "allpairs", [], project.profiles_dir))
-    studies = {"homo", "material", "hetero"}
+    studies = {"sim_m2m", "homo", "material", "hetero"}
     changed = sorted(n for n, inst in base.items()
                      if n not in studies and (n not in every or every[n].params != inst.params))
     assert changed == []
@@ -56,6 +57,9 @@ def test_allpairs_adds_pairs_and_changes_nothing_else():
         assert pairs(every[study]) == set(permutations(skins, 2)), study
         assert pairs(base[study]) < pairs(every[study]), study
     assert len([n for n in every if n.startswith("transfer[")]) == 20 + 6 + 12
+    patterns = every["m2m_sim"].params["skins"]
+    assert {tuple(p) for p in every["sim_m2m"].params["pairs"]} == set(permutations(patterns, 2))
+    assert len([n for n in every if n.startswith("translate_sim[")]) == 132
 
 
 @pytest.fixture(scope="module")
