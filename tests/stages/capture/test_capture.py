@@ -103,7 +103,10 @@ def test_lost_udp_packets_are_counted_or_fatal(run_capture, baseline, tmp_path):
     data, _ = baseline
     got, final = run_capture(tmp_path / "a", netft={"faults": {"drop_every": 12}, "max_lost_fraction": 0.1})
     lost, received = final["attrs"]["netft_lost"], final["attrs"]["netft_received"]
-    assert lost == (received + lost) // 12 and lost >= 5
+    # every 12th record sent is dropped; a reply later than retry_s (a busy machine) is asked
+    # for again and counted as lost too, so a few more may be lost than were dropped
+    dropped = (received + lost) // 12
+    assert dropped <= lost <= dropped + 3 and lost >= 5
     _same(got, data)                              # a lost reply is asked for again: same data
     with pytest.raises(DeviceError, match=r"^netft 127\.0\.0\.1:\d+: 10 of 21 records lost \(47\.6%, limit 5%\) "
                                           r"\(trajectory frame 2, contact 0\)$"):
