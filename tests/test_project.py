@@ -37,9 +37,8 @@ def test_profiles_load(profile):
 
 def test_allpairs_adds_pairs_and_changes_nothing_else():
     """The allpairs profile runs every ordered pair of the 12 simulation patterns and of the
-    default profile's twins; every node
-    instance the default has keeps its params there (so a default store serves it), except the
-    studies, whose pair lists grow."""
+    default profile's twins; every node instance the default has keeps its params there (so a
+    default store serves it), except the studies, whose pair lists grow."""
     from itertools import permutations
     project = find_project(ROOT)
     graph = project.load_graph()
