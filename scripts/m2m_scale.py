@@ -10,8 +10,9 @@ stages.common.torch_device (the GPU when torch sees one; the paper profile's siz
 batch 32, 20000 steps), or loads one saved by --save.  Then it scores that model and the
 store's m2m_sim as study sim-m2m does (translate_sequence, image_features, image_study over
 sim_m2m.pairs), both on the same --n-eval evaluation frames per set, and prints each pair's
-FID and the mean FID and KID: before, the store's model, the new one.  --markers-dir holds <skin>.h5
-marker artifacts and --baseline an m2m_sim artifact file, for a machine without the store.
+FID and the mean FID and KID: before, the store's model, the new one.  --markers-dir holds
+<skin>.h5 marker artifacts and --baseline an m2m_sim artifact file, for a machine without the
+store.
 """
 import argparse
 import json
