@@ -32,6 +32,9 @@ LABELS = "labels_comp"
 # genforce_comp over several regressor seeds (transfer's and seed[...]'s): the mean of each
 # metric, and its standard deviation as sd_<metric>
 SEEDS = "genforce_comp_seeds"
+# the same models read as one (force.model.MeanPredictor, as the control study reads its
+# ensemble): the metrics of their mean prediction
+ENSEMBLE = "genforce_comp_ensemble"
 # the transferred models (and source-only) scored on the target's contacts of the seen
 # (training) indenters as well: method <method>_seen.  GenForce never sees the target's labels
 # nor, past M2M's few fine-tuning pairs, its images, so these frames are test data for every
@@ -308,8 +311,9 @@ def force_study(*, study: str, pairs: Sequence[Sequence[str]], own: Mapping[str,
     where the source's test frames are location-paired with the target's, and, for the pairs
     that `seeds` (fit_transfer_seed artifacts keyed "source=..,target=..,seed=..") has models
     of, the method SEEDS: genforce_comp's metrics averaged over transfer's model and those,
-    with sd_<metric> their standard deviation (mean over pairs in `<study>/mean/` when every
-    pair has them).  With `seen_indenters` (the training indenters), source_only, genforce and
+    with sd_<metric> their standard deviation, and the method ENSEMBLE: the metrics of the
+    mean of those models' predictions (means over pairs in `<study>/mean/` when every pair
+    has them).  With `seen_indenters` (the training indenters), source_only, genforce and
     genforce_comp are also scored on the target's contacts of those: methods `<method>_seen`
     (SEEN; the paper's seen / unseen split), figure seen_unseen.  Arrays mae/<method> (pairs,
     4: fx, fy, fz, total), r2/<method> (pairs, 3), pairs ("source_target"), sources, targets,
@@ -376,12 +380,15 @@ def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_fra
                 metrics[f"{study}/{s}_{t}/{m}/{k}"] = v
         members = _seed_models(seeds, s, t)
         if members:
-            runs = [scores["genforce_comp"]] + [
-                force_metrics(predict(load(m, "genforce_comp"), test), test["force"]) for m in members]
+            member_preds = [preds["genforce_comp"]] + [predict(load(m, "genforce_comp"), test)
+                                                       for m in members]
+            runs = [scores["genforce_comp"]] + [force_metrics(p, test["force"]) for p in member_preds[1:]]
             for k in runs[0]:
                 values = [r[k] for r in runs]
                 metrics[f"{study}/{s}_{t}/{SEEDS}/{k}"] = float(np.mean(values))
                 metrics[f"{study}/{s}_{t}/{SEEDS}/sd_{k}"] = float(np.std(values, ddof=1))
+            for k, v in force_metrics(np.mean(member_preds, axis=0), test["force"]).items():
+                metrics[f"{study}/{s}_{t}/{ENSEMBLE}/{k}"] = v
         if seen_indenters:
             if t not in seen_sets:
                 seen_sets[t] = _test_set(markers[t], seen_indenters)
@@ -403,6 +410,7 @@ def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_fra
         for k in METRICS:
             metrics[f"{study}/mean/{m}/{k}"] = float(np.mean([p["scores"][m][k] for p in per_pair]))
     for method, names in ((LABELS, METRICS), (SEEDS, [*METRICS, *(f"sd_{k}" for k in METRICS)]),
+                          (ENSEMBLE, METRICS),
                           *((f"{m}{SEEN}", METRICS) for m in SEEN_METHODS)):
         for k in names:
             have = [metrics[f"{study}/{s}_{t}/{method}/{k}"] for s, t in pairs

@@ -467,8 +467,9 @@ def test_force_study_metrics_and_figures(nodes_out, skins):
 
 def test_force_study_seeds_average_genforce_comp_over_the_seed_models(nodes_out, skins):
     """A pair with seed models gets genforce_comp_seeds: each metric's mean and sd over
-    transfer's genforce_comp and the seeds' (here seed 1 = another model, seed 2 = the same);
-    a pair without them gets none, nor does the study's mean."""
+    transfer's genforce_comp and the seeds' (here seed 1 = another model, seed 2 = the same),
+    and genforce_comp_ensemble: the metrics of their mean prediction; a pair without them gets
+    neither, nor does the study's mean."""
     own, same, stiffer = nodes_out
     seeds = {"source=A,target=B,seed=2": same, "source=A,target=B,seed=1": stiffer}
     m = force_study(study="toy", pairs=[["A", "B"], ["B", "A"]], own=own,
@@ -476,8 +477,9 @@ def test_force_study_seeds_average_genforce_comp_over_the_seed_models(nodes_out,
                     markers=skins, test_indenters=["torus"], trace_frames=20, seeds=seeds)["metrics"]
     rows = np.flatnonzero(np.isin(skins["B"]["contact_id"], [3, 7, 11]))     # the torus contacts
     model = load_model(stiffer, "genforce_comp", device=torch_device())    # where force_study predicts
-    other = force_metrics(predict_contacts(model, skins["B"]["images"][rows], skins["B"]["contact_id"][rows],
-                                           skins["B"]["reference"]), skins["B"]["force"][rows])
+    other_pred = predict_contacts(model, skins["B"]["images"][rows], skins["B"]["contact_id"][rows],
+                                  skins["B"]["reference"])
+    other = force_metrics(other_pred, skins["B"]["force"][rows])
     base = m["toy/A_B/genforce_comp/mae_total"]
     assert other["mae_total"] != pytest.approx(base)
     assert m["toy/A_B/genforce_comp_seeds/mae_total"] == pytest.approx((2 * base + other["mae_total"]) / 3)
@@ -486,6 +488,16 @@ def test_force_study_seeds_average_genforce_comp_over_the_seed_models(nodes_out,
     assert m["toy/A_B/genforce_comp_seeds/r2_fz"] == pytest.approx(
         (2 * m["toy/A_B/genforce_comp/r2_fz"] + other["r2_fz"]) / 3)
     assert not any("/B_A/genforce_comp_seeds/" in k or "/mean/genforce_comp_seeds/" in k for k in m)
+    # genforce_comp_ensemble: the metrics of the three models' mean prediction
+    same_pred = predict_contacts(load_model(same, "genforce_comp", device=torch_device()),
+                                 skins["B"]["images"][rows], skins["B"]["contact_id"][rows],
+                                 skins["B"]["reference"])
+    ensemble = force_metrics((2 * same_pred + other_pred) / 3, skins["B"]["force"][rows])
+    assert m["toy/A_B/genforce_comp_ensemble/mae_total"] == pytest.approx(ensemble["mae_total"], rel=1e-5)
+    assert m["toy/A_B/genforce_comp_ensemble/r2_fx"] == pytest.approx(ensemble["r2_fx"], rel=1e-5)
+    assert m["toy/A_B/genforce_comp_ensemble/mae_total"] != pytest.approx(
+        m["toy/A_B/genforce_comp_seeds/mae_total"])
+    assert not any("/B_A/genforce_comp_ensemble/" in k or "/mean/genforce_comp_ensemble/" in k for k in m)
 
 
 def test_force_study_scores_the_seen_indenters_too(nodes_out, skins):
