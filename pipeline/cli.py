@@ -261,11 +261,20 @@ def cmd_verify(ctx: Context) -> int:
 
 def cmd_gc(ctx: Context) -> int:
     sched = ctx.scheduler()
-    keep = {p.key for p in sched.plan() if p.record is not None}
+    plan = sched.plan()
+    keep = {p.key for p in plan if p.record is not None}
     removed = ctx.store.gc(keep, dry_run=ctx.args.dry_run, keep_runs=ctx.args.keep_runs)
+    verb = "would remove" if ctx.args.dry_run else "removed"
     for k in removed:
-        print(f"{'would remove' if ctx.args.dry_run else 'removed'} {k}")
-    print(f"{len(removed)} artifacts {'to remove' if ctx.args.dry_run else 'removed'}")
+        print(f"{verb} {k}")
+    # a checkpoint of a key the current params no longer plan can never be resumed
+    orphans = ctx.store.orphan_checkpoints({p.key for p in plan})
+    for path in orphans:
+        if not ctx.args.dry_run:
+            path.unlink(missing_ok=True)
+        print(f"{verb} staging/{path.name}")
+    print(f"{len(removed)} artifacts {'to remove' if ctx.args.dry_run else 'removed'}"
+          + (f", {len(orphans)} checkpoints" if orphans else ""))
     return 0
 
 

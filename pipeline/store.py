@@ -257,6 +257,13 @@ class Store:
                 p.unlink(missing_ok=True)
         return removed
 
+    def orphan_checkpoints(self, live: set[str]) -> list[Path]:
+        """Training checkpoints in `staging/` (<key>.ckpt, and the .bad and .tmp files beside
+        them) whose key is not in `live`: a run of those keys can never resume from them."""
+        staging = self.root / "staging"
+        found = staging.glob("*.ckpt*") if staging.is_dir() else []
+        return sorted(p for p in found if p.name.partition(".")[0] not in live)
+
 
 TMP_MAX_AGE_S = 24 * 3600
 

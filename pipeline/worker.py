@@ -8,7 +8,10 @@ or is a generator yielding chunks appended along axis 0 and returning that final
 provenance, beside the engine's own seconds, and out of the content digest: a re-run that
 makes the same content at another speed is still an early cutoff.
 A function with a `staging_dir` parameter gets `<store>/staging` (hardware capture keeps its
-resumable staging files there).  An exception whose class sets `user_error = True` (a device
+resumable staging files there).  A function with a `checkpoint` parameter gets a path of its
+own in it, `<store>/staging/<key>.ckpt`: long training saves its progress there and a later
+run of the same key (same code, params and inputs) resumes from it; the worker deletes the
+file once the artifact is committed.  An exception whose class sets `user_error = True` (a device
 that is missing or disconnects) is reported as one line, like a PipelineError.
 """
 from __future__ import annotations
@@ -165,9 +168,14 @@ def execute(task: dict) -> dict:
             func = _import(task["func"], task.get("roots", []))
             kwargs: dict[str, Any] = dict(task["grid"])
             kwargs.update(task["params"])
-            if "staging_dir" in inspect.signature(func).parameters:  # capture: resumable staging
+            takes = inspect.signature(func).parameters
+            checkpoint = store.root / "staging" / f"{key}.ckpt"
+            if "staging_dir" in takes or "checkpoint" in takes:  # resumable staging / training
                 (store.root / "staging").mkdir(exist_ok=True)
+            if "staging_dir" in takes:
                 kwargs["staging_dir"] = str(store.root / "staging")
+            if "checkpoint" in takes:
+                kwargs["checkpoint"] = str(checkpoint)
             for arg, ref in task["inputs"].items():
                 if isinstance(ref, dict):
                     kwargs[arg] = {label: Artifact(store.path(k)) for label, k in ref.items()}
@@ -182,6 +190,7 @@ def execute(task: dict) -> dict:
             _consume(func(**kwargs), writer)
             rec = writer.commit()
             writer = None
+            checkpoint.unlink(missing_ok=True)   # the artifact holds what it was for
             return {"record": rec, "computed": True}
         except BaseException as exc:  # report, don't crash the executor
             if writer is not None:

@@ -82,7 +82,7 @@ def _distinct_references(skins: Sequence[str], refs: np.ndarray, title: str) -> 
 
 def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_size, lr, seed,
            change_weight, change_share, title, target_balance=0.0, change_per_example=0.0,
-           identity_share=0.0):
+           identity_share=0.0, checkpoint=None):
     from stages.m2m.model import Translator, state_arrays
     from stages.m2m.train import PairBatches, fit, target_probabilities
     frames, rows = paired_table(markers, skins, train_indenters, per_skin)
@@ -98,7 +98,7 @@ def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_
                    batch_size=int(batch_size), lr=float(lr), seed=int(seed),
                    change_weight=float(change_weight), change_share=float(change_share),
                    change_per_example=float(change_per_example),
-                   progress=title)
+                   progress=title, checkpoint=checkpoint)
         weights = state_arrays(net)
         samples = _samples_sheet(Translator(config, weights), images, refs, seed)
     tail = hist["loss"][-max(1, len(hist["loss"]) // 20):]
@@ -115,17 +115,20 @@ def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_
                   "target_share": {s: round(float(v), 4) for s, v in zip(skins, share)},
                   "final_loss": float(np.mean(tail)) if len(tail) else float("nan"),
                   "parameters": int(sum(v.size for v in weights.values()))},
-        "timing": {"seconds": round(hist["seconds"], 2), "steps_per_s": round(hist["steps_per_s"], 3)},
+        "timing": {"seconds": round(hist["seconds"], 2), "steps_per_s": round(hist["steps_per_s"], 3),
+                   "resumed_at_step": int(hist["resumed_at"])},
     }
 
 
 def pretrain(*, markers: Mapping, skins: list[str], train_indenters: list[str], size, steps: int,
              batch_size: int, lr: float, seed: int, width: int, timesteps: int,
              change_weight: float = 0.0, change_share: float = 0.0, source_gate: bool = True,
-             identity_share: float = 0.0) -> dict:
+             identity_share: float = 0.0, checkpoint: str | None = None) -> dict:
     """Node m2m_sim: the generator trained from scratch on every ordered pair of `skins`
     (location-paired frames of the training indenters).  Returns weights (name -> array),
     the per-step loss, figures loss/samples and attrs (config to rebuild the model, ...).
+    checkpoint: where the training saves its state as it goes (the worker gives a path per
+    cache key), so an interrupted run resumes (train.fit).
     source_gate: the logits' base adds the source's edit where the references coincide
     (model.M2MNet.base); the fine-tune keeps the pretrained model's config.  identity_share:
     that share of the examples is a skin into itself (train.PairBatches)."""
@@ -135,23 +138,25 @@ def pretrain(*, markers: Mapping, skins: list[str], train_indenters: list[str], 
     torch.manual_seed(int(seed))
     net = build(config)
     return _train(net, config, markers, skins, train_indenters, 0, steps, batch_size, lr, seed,
-                  change_weight, change_share, "m2m pretrain", identity_share=identity_share)
+                  change_weight, change_share, "m2m pretrain", identity_share=identity_share,
+                  checkpoint=checkpoint)
 
 
 def finetune(*, base, markers: Mapping, skins: list[str], train_indenters: list[str],
              pairs_per_skin: int, steps: int, batch_size: int, lr: float, seed: int,
              change_weight: float = 0.0, change_share: float = 0.0, target_balance: float = 0.0,
-             change_per_example: float = 0.0, identity_share: float = 0.0) -> dict:
+             change_per_example: float = 0.0, identity_share: float = 0.0,
+             checkpoint: str | None = None) -> dict:
     """Node m2m: `base` (a pretrained model) fine-tuned on `pairs_per_skin` location-paired
     frames shared by `skins`, evenly spread over the training indenters' frames.  Targets are
     drawn by train.target_probabilities over the skins' looks (the markers' `look` attribute)
-    with `target_balance`."""
+    with `target_balance`.  checkpoint: as pretrain's."""
     from stages.m2m.model import build, weights_of
     config = attrs_of(base)["config"]
     net = build(config, weights_of(base))
     out = _train(net, config, markers, skins, train_indenters, int(pairs_per_skin), steps, batch_size,
                  lr, seed, change_weight, change_share, "m2m finetune", target_balance,
-                 change_per_example, identity_share)
+                 change_per_example, identity_share, checkpoint)
     out["attrs"]["base_skins"] = list(attrs_of(base).get("skins", []))
     out["attrs"]["pairs_per_skin"] = int(pairs_per_skin)
     return out

@@ -108,6 +108,13 @@ class PairBatches:
         x = torch.from_numpy(stack.astype(np.float32)) / 127.5 - 1.0
         return x[:, :3], (x[:, 3:] > 0).float(), torch.from_numpy(self.changed_fraction[b])
 
+    def state(self) -> dict:
+        """The random stream's state (fit's checkpoints): restore() continues it exactly."""
+        return self.rng.bit_generator.state
+
+    def restore(self, state: dict) -> None:
+        self.rng.bit_generator.state = state
+
     @staticmethod
     def _symmetry(x: np.ndarray, g: int) -> np.ndarray:
         """One of the dihedral group's elements on (C,H,W): flips by g's bits 0-1, transpose by bit 2."""
@@ -161,6 +168,39 @@ def loss_fn(logits: torch.Tensor, target: torch.Tensor, reference: torch.Tensor 
     return bce + DICE_WEIGHT * (1 - dice.mean())
 
 
+CHECKPOINT_EVERY_S = 60.0   # fit(checkpoint=...): seconds between saves of the training state
+
+
+def _save_checkpoint(path: str, state: dict) -> None:
+    """torch.save to a temporary file and rename: a kill mid-write leaves the last checkpoint."""
+    import os
+    tmp = f"{path}.tmp"
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+
+
+def _load_checkpoint(path: str, *, steps: int, batch_size: int) -> dict | None:
+    """The state saved by fit at `path`, or None when there is none; one that cannot be read or
+    was saved by a fit of another length or batch is renamed <path>.bad with a warning."""
+    import os
+    import warnings
+    if not os.path.exists(path):
+        return None
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)   # tensors, no code
+        if (int(state["steps"]), int(state["batch_size"])) != (int(steps), int(batch_size)):
+            raise ValueError(f"saved for {state['steps']} steps of {state['batch_size']}, "
+                             f"not {steps} of {batch_size}")
+        if not 0 < int(state["step"]) < int(steps):
+            raise ValueError(f"step {state['step']} is outside 1..{steps - 1}")
+    except Exception as exc:  # noqa: BLE001 - any unreadable checkpoint: start over, keep it aside
+        os.replace(path, f"{path}.bad")
+        warnings.warn(f"checkpoint {path} set aside as .bad and training starts over: "
+                      f"{type(exc).__name__}: {exc}", stacklevel=3)
+        return None
+    return state
+
+
 def noisy_input(target: torch.Tensor, config, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """(x_t, t) for a batch: one-step examples at T-1 with x_T = 0 (model.sample's first
     step), the rest at a uniform t < T-1 with x_t = sqrt(abar) x0 + sqrt(1 - abar) noise."""
@@ -178,11 +218,19 @@ def noisy_input(target: torch.Tensor, config, gen: torch.Generator) -> tuple[tor
 
 def fit(net: M2MNet, config, batches: Callable, *, steps: int, batch_size: int, lr: float,
         seed: int, change_weight: float = 0.0, change_share: float = 0.0,
-        progress: str = "m2m", change_per_example: float = 0.0) -> dict:
+        progress: str = "m2m", change_per_example: float = 0.0,
+        checkpoint: str | None = None, checkpoint_every_s: float = CHECKPOINT_EVERY_S) -> dict:
     """AdamW with warm-up and cosine decay; `batches(b)` gives (condition, target, the target
     skin's changed fraction) as PairBatches does; change_weight, change_share and
     change_per_example as in loss_fn (the target reference is the condition's third channel).
-    Returns {"loss": (steps,) float32, "seconds", "steps_per_s"}."""
+
+    `checkpoint`: a file where the whole training state (weights, optimiser, schedule, step,
+    losses and every random stream, `batches.state()` included) is saved at the end of a step
+    every `checkpoint_every_s` seconds, so an interrupted fit (Ctrl-C, a killed job, a lost
+    machine) loses at most that much; a fit that finds one resumes from it and ends with the
+    weights an uninterrupted fit gives.  A checkpoint that cannot be read, or that
+    belongs to another run length, is set aside with a warning and the fit starts over.
+    Returns {"loss": (steps,) float32, "seconds", "steps_per_s", "resumed_at"}."""
     from tqdm import tqdm
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
@@ -191,11 +239,31 @@ def fit(net: M2MNet, config, batches: Callable, *, steps: int, batch_size: int, 
     opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=WEIGHT_DECAY)
     warm = max(1, int(WARMUP * steps))
     sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda i: min(1.0, (i + 1) / warm) * 0.5 * (1 + np.cos(np.pi * min(i, steps) / max(steps, 1))))
+        opt, lambda i: float(min(1.0, (i + 1) / warm) * 0.5 * (1 + np.cos(np.pi * min(i, steps) / max(steps, 1)))))
     losses = np.zeros(steps, np.float32)
+    start, before = 0, 0.0
+    if checkpoint:
+        state = _load_checkpoint(checkpoint, steps=steps, batch_size=batch_size)
+        if state is not None:
+            net.load_state_dict(state["net"])
+            opt.load_state_dict(state["opt"])
+            sched.load_state_dict(state["sched"])
+            gen.set_state(state["gen"])
+            torch.set_rng_state(state["torch"])
+            batches.restore(state["batches"])
+            start, before = int(state["step"]), float(state["seconds"])
+            losses[:start] = state["loss"][:start].numpy()
+
+    def save(i: int) -> None:
+        _save_checkpoint(checkpoint, {
+            "steps": int(steps), "batch_size": int(batch_size), "step": i,
+            "seconds": before + time.perf_counter() - t0, "loss": torch.from_numpy(losses.copy()),
+            "net": net.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
+            "gen": gen.get_state(), "torch": torch.get_rng_state(), "batches": batches.state()})
+
     net.train()
-    t0 = time.perf_counter()
-    for i in tqdm(range(steps), desc=progress, disable=None):
+    t0 = last = time.perf_counter()
+    for i in tqdm(range(start, steps), desc=progress, disable=None, initial=start, total=steps):
         cond, target, frac = batches(batch_size)
         x_t, t = noisy_input(target, config, gen)
         cond, target, x_t, t = cond.to(dev), target.to(dev), x_t.to(dev), t.to(dev)
@@ -206,6 +274,10 @@ def fit(net: M2MNet, config, batches: Callable, *, steps: int, batch_size: int, 
         opt.step()
         sched.step()
         losses[i] = loss.item()
-    seconds = time.perf_counter() - t0
+        if checkpoint and i + 1 < steps and time.perf_counter() - last >= checkpoint_every_s:
+            save(i + 1)      # at a step's end: every random stream is where step i + 1 starts
+            last = time.perf_counter()
+    seconds = before + time.perf_counter() - t0
     net.cpu().eval()
-    return {"loss": losses, "seconds": seconds, "steps_per_s": steps / max(seconds, 1e-9)}
+    return {"loss": losses, "seconds": seconds, "steps_per_s": (steps - start) / max(seconds - before, 1e-9),
+            "resumed_at": start}

@@ -163,6 +163,29 @@ def test_device_error_is_one_line_and_staging_dir_is_given(toy):
     assert (toy / "artifacts" / "staging" / "partial.txt").read_text() == "kept"
 
 
+def test_checkpoint_is_a_path_per_key_kept_on_failure_and_deleted_on_commit(toy):
+    """A node may take `checkpoint`: <store>/staging/<its cache key>.ckpt.  A run that fails
+    leaves what the node saved there; the next run of the same key finds it (here it resumes
+    from the saved value) and, once the artifact is committed, the file is gone."""
+    f = toy / "toy" / "nodes.py"
+    f.write_text(f.read_text().replace(
+        "def scale(base, scale):\n",
+        "def scale(base, scale, checkpoint):\n"
+        "    if not os.path.exists(checkpoint):\n"
+        "        open(checkpoint, 'w').write('7')\n"
+        "        raise RuntimeError('machine lost')\n"
+        "    base = {'x': np.asarray(base['x']) + float(open(checkpoint).read())}\n"))
+    p = cli(toy, "run", check=False)
+    assert p.returncode != 0 and "machine lost" in p.stderr
+    saved = sorted((toy / "artifacts" / "staging").glob("*.ckpt"))
+    assert len(saved) == 1 and saved[0].read_text() == "7"
+    run_json(toy)
+    key, = [n["key"] for n in json.loads(cli(toy, "status", "--json", "scaled").stdout)["nodes"]
+            if n["name"] == "scaled"]
+    assert saved[0].name == f"{key}.ckpt" and not saved[0].exists()
+    assert list((toy / "artifacts" / "staging").iterdir()) == []
+
+
 # -- bad input: one line, exit 2, never a traceback ------------------------------------
 
 @pytest.mark.parametrize("args,message", [

@@ -95,6 +95,23 @@ def test_gc_keeps_current(toy):
     assert statuses(run_json(toy))["base"] == "ran"
 
 
+def test_gc_removes_only_checkpoints_no_planned_key_can_resume(toy):
+    """A checkpoint of a key the current plan holds (built or not) stays; those of other keys
+    (older params, code since changed), with their .bad and .tmp files, go."""
+    run_json(toy)
+    plan = json.loads(cli(toy, "status", "--json", "-p", "seed=9").stdout)["nodes"]
+    planned = next(n["key"] for n in plan if n["status"] != "cached")
+    staging = toy / "artifacts" / "staging"
+    staging.mkdir()
+    for name in (f"{planned}.ckpt", "0123abcd.ckpt", "0123abcd.ckpt.bad", "0123abcd.ckpt.tmp"):
+        (staging / name).write_text("x")
+    dry = cli(toy, "gc", "--dry-run", "-p", "seed=9").stdout
+    assert "would remove staging/0123abcd.ckpt.bad" in dry and planned not in dry
+    assert "0 artifacts to remove, 3 checkpoints" in dry and len(list(staging.iterdir())) == 4
+    assert ", 3 checkpoints" in cli(toy, "gc", "-p", "seed=9").stdout
+    assert [p.name for p in staging.iterdir()] == [f"{planned}.ckpt"]
+
+
 def _env_with_bin():
     bin_dir = str(Path(sys.executable).parent)
     repo = str(Path(__file__).resolve().parents[2])

@@ -10,13 +10,13 @@ from stages.graph import GRAPH
 @pytest.mark.parametrize("name", sorted(GRAPH.nodes))
 def test_node_function_takes_its_inputs_params_and_grid_values(name):
     """The scheduler passes a node's inputs, params and grid variables by name: the function
-    must accept each of them and need no other (but `staging_dir`, which the worker gives
-    the functions that ask for it)."""
+    must accept each of them and need no other (but `staging_dir` and `checkpoint`, which the
+    worker gives the functions that ask for them)."""
     node = GRAPH.nodes[name]
     module, _, attr = node.func.partition(":")
     sig = inspect.signature(getattr(importlib.import_module(module), attr))
     given = {*node.inputs, *node.params, *node.grid_vars}
-    supplied = given | {"staging_dir"}
+    supplied = given | {"staging_dir", "checkpoint"}
     takes = {p.name for p in sig.parameters.values()
              if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}
     if not any(p.kind is p.VAR_KEYWORD for p in sig.parameters.values()):

@@ -6,7 +6,7 @@ import torch
 from stages.m2m import load_translator
 from stages.m2m.model import (Translator, alphas_cumprod, build, default_config, sample, state_arrays,
                               weights_of)
-from stages.m2m.train import PairBatches, loss_fn, noisy_input, target_probabilities
+from stages.m2m.train import PairBatches, fit, loss_fn, noisy_input, target_probabilities
 
 
 def _model(size=(32, 32), width=8, seed=0):
@@ -302,3 +302,65 @@ def test_identity_share_translates_that_share_of_the_examples_into_their_own_ski
     assert identity_rate(0.25) == pytest.approx(0.25, abs=0.025)
     with pytest.raises(ValueError, match=r"identity_share must be in \[0, 1\], got 1.5"):
         PairBatches(imgs, refs, seed=0, identity_share=1.5)
+
+
+class _Stop(Exception):
+    pass
+
+
+def _fit_setup():
+    imgs = _images(12, size=16).reshape(3, 4, 16, 16)
+    refs = _images(3, size=16, seed=3)
+    cfg = default_config(size=(16, 16), width=8, timesteps=50)
+    torch.manual_seed(0)
+    return cfg, build(cfg), PairBatches(imgs, refs, seed=5)
+
+
+def test_fit_resumed_from_a_checkpoint_ends_where_an_uninterrupted_fit_does(tmp_path):
+    """A fit killed after step 4 (a checkpoint saved at every step's end) and run again resumes
+    at step 4 and gives the uninterrupted fit's weights and losses bit for bit; the loss at
+    the step after the resume differs from the first step's, so the resume did not restart."""
+    kw = dict(steps=9, batch_size=4, lr=1e-3, seed=2)
+    cfg, whole_net, batches = _fit_setup()
+    whole = fit(whole_net, cfg, batches, **kw)
+    path = str(tmp_path / "m2m.ckpt")
+
+    cfg, net, batches = _fit_setup()
+    calls = {"n": 0}
+
+    def dying(b):                            # the machine is lost while drawing step 5's batch
+        calls["n"] += 1
+        if calls["n"] == 5:
+            raise _Stop
+        return batches(b)
+    dying.state, dying.restore = batches.state, batches.restore
+    with pytest.raises(_Stop):
+        fit(net, cfg, dying, checkpoint=path, checkpoint_every_s=0.0, **kw)
+    assert torch.load(path, weights_only=True)["step"] == 4
+
+    cfg, net, batches = _fit_setup()
+    again = fit(net, cfg, batches, checkpoint=path, checkpoint_every_s=0.0, **kw)
+    assert again["resumed_at"] == 4 and whole["resumed_at"] == 0
+    np.testing.assert_array_equal(again["loss"], whole["loss"])
+    assert whole["loss"][4] != whole["loss"][0]
+    ref = state_arrays(whole_net)
+    for name, value in state_arrays(net).items():
+        np.testing.assert_array_equal(value, ref[name], err_msg=name)
+
+
+def test_an_unreadable_or_foreign_checkpoint_is_set_aside_and_training_starts_over(tmp_path):
+    path = tmp_path / "m2m.ckpt"
+    path.write_bytes(b"\x80\x02 truncated")
+    cfg, net, batches = _fit_setup()
+    with pytest.warns(UserWarning, match=r"m2m.ckpt set aside as .bad and training starts over"):
+        out = fit(net, cfg, batches, steps=3, batch_size=4, lr=1e-3, seed=2, checkpoint=str(path))
+    assert out["resumed_at"] == 0 and not path.exists()
+    assert (tmp_path / "m2m.ckpt.bad").read_bytes() == b"\x80\x02 truncated"
+
+    cfg, net, batches = _fit_setup()     # a checkpoint of a 9-step fit does not serve a 12-step one
+    fit(net, cfg, batches, steps=9, batch_size=4, lr=1e-3, seed=2, checkpoint=str(path),
+        checkpoint_every_s=0.0)
+    cfg, net, batches = _fit_setup()
+    with pytest.warns(UserWarning, match=r"saved for 9 steps of 4, not 12 of 4"):
+        out = fit(net, cfg, batches, steps=12, batch_size=4, lr=1e-3, seed=2, checkpoint=str(path))
+    assert out["resumed_at"] == 0
