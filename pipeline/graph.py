@@ -10,6 +10,8 @@ Input references:
   "up[sensor={source}]"    a template filled from this instance's grid values
   "up[*]" / "up[a=1]"      gather: every matching instance, passed as a dict keyed by
                            the remaining grid values ("b=2" or just "2" for one variable)
+  "up[a=@params.key]"      gather the instances whose `a` is in that params list (keyed
+                           by `a` too), so a node needs only the instances it reads
 """
 from __future__ import annotations
 
@@ -222,13 +224,27 @@ class Graph:
                 if unknown:
                     raise PipelineError(f"node '{node.name}' input '{arg}': '{up_name}' has no grid "
                                         f"variable {sorted(unknown)}")
-                match = [c for c in candidates if all(_fmt(dict(c.bindings)[k]) == v for k, v in sel.items())]
-                if not match and sel:   # "[*]" of a node with no instances gathers nothing
+                within = {}             # var -> the values a "var=@params.key" selector allows
+                for k, v in sel.items():
+                    if v.startswith("@"):
+                        got = P.get(params, v[1:])
+                        if not isinstance(got, list):
+                            raise PipelineError(f"node '{node.name}' input '{arg}': {v[1:]} must be a "
+                                                f"list to select {up_name}'s {k}, got {type(got).__name__}")
+                        within[k] = {_fmt(x) for x in got}
+                        inst.param_keys.append(v[1:])
+
+                def chosen(c):
+                    b = dict(c.bindings)
+                    return all(_fmt(b[k]) in within[k] if k in within else _fmt(b[k]) == v
+                               for k, v in sel.items())
+                match = [c for c in candidates if chosen(c)]
+                if not match and sel and not within:   # "[*]" (or an empty list) may gather nothing
                     raise PipelineError(f"node '{inst.name}' input '{arg}': no instance matches '{ref}'")
-                if set(sel) == set(up_vars):
+                if set(sel) == set(up_vars) and not within:
                     inst.inputs[arg] = match[0].name
                 else:
-                    rest = [v for v in up_vars if v not in sel]
+                    rest = [v for v in up_vars if v not in sel or v in within]
                     gathered = {}
                     for c in match:
                         b = dict(c.bindings)

@@ -85,7 +85,7 @@ GRAPH.node("ingest", "stages.capture.ingest:ingest",
 
 # -- M2M translation: one generator for every pair, a training-free baseline, image metrics ----
 GRAPH.node("m2m_sim", "stages.m2m.nodes:pretrain",
-           inputs={"markers": "markers[*]"},
+           inputs={"markers": "markers[skin=@m2m.pretrain.skins]"},
            params={"skins": "m2m.pretrain.skins", "train_indenters": "splits.train_indenters",
                    "size": "render.size", "steps": "m2m.pretrain.steps",
                    "batch_size": "m2m.pretrain.batch_size", "lr": "m2m.pretrain.lr",
@@ -97,7 +97,7 @@ GRAPH.node("m2m_sim", "stages.m2m.nodes:pretrain",
                    "identity_share": "m2m.pretrain.identity_share"},
            description="M2M generator trained from scratch on the 12 simulation patterns")
 GRAPH.node("m2m", "stages.m2m.nodes:finetune",
-           inputs={"base": "m2m_sim", "markers": "markers[*]"},
+           inputs={"base": "m2m_sim", "markers": "markers[skin=@m2m.finetune.skins]"},
            params={"skins": "m2m.finetune.skins", "train_indenters": "splits.train_indenters",
                    "pairs_per_skin": "m2m.finetune.pairs_per_skin", "steps": "m2m.finetune.steps",
                    "batch_size": "m2m.finetune.batch_size", "lr": "m2m.finetune.lr",
@@ -133,8 +133,11 @@ GRAPH.node("features", "stages.m2m.nodes:image_features",
            inputs={"markers": "markers[skin={skin}]"}, params=_EVAL,
            grid={"skin": "render.skins + taxels.skins"},
            description="InceptionV3 features of a skin's evaluation frames (FID/KID)")
+# the simulation patterns' features and flow-warps only, so that the study needs no twin
+_SIMS = "@m2m.pretrain.skins"
 GRAPH.node("sim_m2m", "stages.m2m.nodes:image_study",
-           inputs={"features": "features[*]", "translated": "translate_sim[*]", "warped": "flow_warp[*]"},
+           inputs={"features": f"features[skin={_SIMS}]", "translated": "translate_sim[*]",
+                   "warped": f"flow_warp[source={_SIMS},target={_SIMS}]"},
            params={"study": "sim_m2m.study", "pairs": "sim_m2m.pairs", "kid_subset": "m2m.kid_subset"},
            description="study sim-m2m (paper Fig. 3): FID/KID before / m2m / flow_warp, heatmaps, t-SNE")
 

@@ -150,3 +150,28 @@ def test_empty_grid_has_no_instances_and_gathers_nothing():
         g.expand({"seeds": []})
     with pytest.raises(PipelineError, match=r"grid 'seed' \(seeds\) must be a list"):
         g.expand({"seeds": 3})
+
+
+def test_a_params_list_selector_gathers_only_the_listed_instances():
+    """'up[var=@key]' gathers the instances whose var is in the params list `key` (keyed by
+    every such var), so the node's closure holds only those; an empty list gathers nothing
+    and a key that is not a list is an error naming it."""
+    g = zipped_graph()
+    g.node("sim_study", "m:s", inputs={"few": "translate[source=@sims,target=@sims]",
+                                       "own": "unify[skin=@sims]"})
+    params = {**ZPARAMS, "sims": ["a", "b"]}
+    inst = g.expand(params)
+    assert inst["sim_study"].inputs == {
+        "few": {"source=a,target=b": "translate[source=a,target=b]",
+                "source=b,target=a": "translate[source=b,target=a]"},
+        "own": {"a": "unify[skin=a]", "b": "unify[skin=b]"}}
+    assert inst["sim_study"].param_keys.count("sims") == 3
+    closure = g.closure(inst, ["sim_study"])
+    assert "translate[source=a,target=u]" not in closure and "taxels[skin=u]" not in closure
+    assert g.expand({**ZPARAMS, "sims": ["u"]})["sim_study"].inputs == {
+        "few": {}, "own": {"u": "unify[skin=u]"}}
+    with pytest.raises(PipelineError, match=r"input 'few': sims must be a list to select "
+                                            r"translate's source, got str"):
+        g.expand({**ZPARAMS, "sims": "a"})
+    with pytest.raises(PipelineError, match=r"unknown param 'sims'"):
+        g.expand(ZPARAMS)
