@@ -11,8 +11,8 @@ A function with a `staging_dir` parameter gets `<store>/staging` (hardware captu
 resumable staging files there).  A function with a `checkpoint` parameter gets a path of its
 own in it, `<store>/staging/<key>.ckpt`: long training saves its progress there and a later
 run of the same key (same code, params and inputs) resumes from it; the worker deletes the
-file once the artifact is committed.  An exception whose class sets `user_error = True` (a device
-that is missing or disconnects) is reported as one line, like a PipelineError.
+file once the artifact is committed.  An exception whose class sets `user_error = True` (a
+device that is missing or disconnects) is reported as one line, like a PipelineError.
 """
 from __future__ import annotations
 
