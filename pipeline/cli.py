@@ -9,7 +9,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -108,6 +110,10 @@ def _print_json(obj) -> None:
     sys.stdout.write(json.dumps(obj, indent=None) + "\n")
 
 
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
 def cmd_run(ctx: Context) -> int:
     a = ctx.args
     sched = ctx.scheduler()
@@ -124,11 +130,21 @@ def cmd_run(ctx: Context) -> int:
         return 0
     from pipeline.executors import make_executor
     executor = make_executor(a.executor, a.jobs, a.address)
+    # SIGTERM (a job scheduler's or a machine's time limit) stops a run as Ctrl-C does: the
+    # executor's workers are stopped too instead of computing on, orphaned
+    main_thread = threading.current_thread() is threading.main_thread()   # signals need it
+    previous = signal.signal(signal.SIGTERM, _interrupt) if main_thread else None
+    interrupted = False
     try:
         results = sched.run(a.targets, executor, force=a.force, progress=not a.json,
                             meta={"targets": a.targets, "profile": a.profile or "default", "params": a.param})
+    except KeyboardInterrupt:
+        interrupted = True
+        raise
     finally:
-        executor.close()
+        executor.close(interrupted)
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
     total = round(time.time() - t0, 4)
     if a.json:
         _print_json({"nodes": [{"name": r.name, "key": r.key, "status": r.status, "seconds": r.seconds}

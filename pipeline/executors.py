@@ -30,7 +30,7 @@ class InlineExecutor:
     def result(self, fut):
         return fut.result()
 
-    def close(self):
+    def close(self, interrupted: bool = False):
         pass
 
 
@@ -66,8 +66,14 @@ class ProcessExecutor(InlineExecutor):
         done, _ = cf.wait(futures, return_when=cf.FIRST_COMPLETED)
         return done
 
-    def close(self):
-        self.pool.shutdown(wait=True, cancel_futures=True)
+    def close(self, interrupted: bool = False):
+        """Wait for the running tasks; `interrupted` (Ctrl-C, SIGTERM): stop the workers now.
+        A worker stopped mid-task leaves only its temp file (gc removes it) and, for training,
+        its checkpoint, from which the next run resumes."""
+        if interrupted:
+            for proc in list((getattr(self.pool, "_processes", None) or {}).values()):
+                proc.terminate()
+        self.pool.shutdown(wait=not interrupted, cancel_futures=True)
 
 
 class DaskExecutor(InlineExecutor):
@@ -100,8 +106,8 @@ class DaskExecutor(InlineExecutor):
     def result(self, fut):
         return fut.result()
 
-    def close(self):
-        self.client.close()
+    def close(self, interrupted: bool = False):
+        self.client.close()     # releases the futures: tasks not yet started are dropped
         if self._cluster is not None:
             self._cluster.close()
 

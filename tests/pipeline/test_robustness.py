@@ -49,6 +49,42 @@ def test_sigkill_mid_write_leaves_no_partial_artifact(toy):
     assert not list(objects.glob(".tmp-*"))
 
 
+def _running(pid: int) -> bool:
+    """The process exists and is not a zombie (an orphan's zombie may wait for a reaper)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (FileNotFoundError, IndexError):
+        return False
+
+
+def test_sigterm_stops_a_process_run_and_its_workers(toy):
+    """SIGTERM to `pipeline run --executor process` (a job scheduler's time limit) ends it as
+    Ctrl-C does, one line and exit 130, and stops the worker computing a node instead of
+    leaving it orphaned; the next run computes that node."""
+    f = toy / "toy" / "nodes.py"
+    f.write_text(f.read_text().replace(
+        "def frames(base, slow):\n",
+        "def frames(base, slow):\n    open('frames.pid', 'w').write(str(os.getpid()))\n"))
+    run_json(toy, "base")
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline", "run", "frames", "--executor", "process",
+                             "-p", "slow=5"], cwd=toy, env=_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    pid_file = toy / "frames.pid"
+    deadline = time.time() + 60
+    while not (pid_file.exists() and pid_file.read_text()) and time.time() < deadline:
+        time.sleep(0.05)
+    worker = int(pid_file.read_text())
+    assert worker != proc.pid and _running(worker)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130 and err.strip().splitlines()[-1] == "pipeline: interrupted"
+    deadline = time.time() + 10
+    while _running(worker) and time.time() < deadline:
+        time.sleep(0.05)
+    assert not _running(worker), "the worker computes on after its run was stopped"
+    assert statuses(run_json(toy, "frames", "-p", "slow=0.01"))["frames"] == "ran"
+
+
 def test_concurrent_runs_compute_each_node_once(toy, tmp_path):
     log = tmp_path / "log.txt"
     env = {**_env(), "TOY_LOG": str(log)}
