@@ -49,6 +49,7 @@ class Store:
         self.runs = self.root / "runs"
         self.locks = self.root / "locks"
         self.corrupt = self.root / "corrupt"
+        self.staging = self.root / "staging"    # capture staging files, training checkpoints
 
     def init(self) -> "Store":
         try:
@@ -257,11 +258,14 @@ class Store:
                 p.unlink(missing_ok=True)
         return removed
 
+    def checkpoint_path(self, key: str) -> Path:
+        """Where the node computing `key` keeps its training checkpoint."""
+        return self.staging / f"{key}.ckpt"
+
     def orphan_checkpoints(self, live: set[str]) -> list[Path]:
         """Training checkpoints in `staging/` (<key>.ckpt, and the .bad and .tmp files beside
         them) whose key is not in `live`: a run of those keys can never resume from them."""
-        staging = self.root / "staging"
-        found = staging.glob("*.ckpt*") if staging.is_dir() else []
+        found = self.staging.glob("*.ckpt*") if self.staging.is_dir() else []
         return sorted(p for p in found if p.name.partition(".")[0] not in live)
 
 

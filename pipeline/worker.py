@@ -169,12 +169,12 @@ def execute(task: dict) -> dict:
             kwargs: dict[str, Any] = dict(task["grid"])
             kwargs.update(task["params"])
             takes = inspect.signature(func).parameters
-            checkpoint = store.root / "staging" / f"{key}.ckpt"
-            if "staging_dir" in takes or "checkpoint" in takes:  # resumable staging / training
-                (store.root / "staging").mkdir(exist_ok=True)
+            checkpoint = store.checkpoint_path(key) if "checkpoint" in takes else None
+            if "staging_dir" in takes or checkpoint:  # resumable staging / training
+                store.staging.mkdir(exist_ok=True)
             if "staging_dir" in takes:
-                kwargs["staging_dir"] = str(store.root / "staging")
-            if "checkpoint" in takes:
+                kwargs["staging_dir"] = str(store.staging)
+            if checkpoint:
                 kwargs["checkpoint"] = str(checkpoint)
             for arg, ref in task["inputs"].items():
                 if isinstance(ref, dict):
@@ -190,7 +190,8 @@ def execute(task: dict) -> dict:
             _consume(func(**kwargs), writer)
             rec = writer.commit()
             writer = None
-            checkpoint.unlink(missing_ok=True)   # the artifact holds what it was for
+            if checkpoint:
+                checkpoint.unlink(missing_ok=True)   # the artifact holds what it was for
             return {"record": rec, "computed": True}
         except BaseException as exc:  # report, don't crash the executor
             if writer is not None:
