@@ -180,12 +180,23 @@ class Artifact(Mapping):
             self._file = h5py.File(self.path, "r")
         except OSError as exc:
             raise PipelineError(f"cannot open artifact {self.path}: {exc}") from None
-        self._names = _dataset_names(self._file)
+        self._listed: list[str] | None = None
+
+    @property
+    def _names(self) -> list[str]:
+        """Every dataset's name, sorted: walked on first need (iteration, a missing name)."""
+        if self._listed is None:
+            self._listed = _dataset_names(self._file)
+        return self._listed
 
     def __getitem__(self, name: str) -> LazyArray:
-        if name not in self._names:
-            raise KeyError(f"{name!r} not in artifact {self.path.name} (has {sorted(self._names)})")
-        return LazyArray(self._file[name])
+        obj = self._file.get(name) if isinstance(name, str) else None
+        if not isinstance(obj, h5py.Dataset):
+            raise KeyError(f"{name!r} not in artifact {self.path.name} (has {self._names})")
+        return LazyArray(obj)
+
+    def __contains__(self, name) -> bool:
+        return isinstance(name, str) and isinstance(self._file.get(name), h5py.Dataset)
 
     def __iter__(self):
         return iter(self._names)

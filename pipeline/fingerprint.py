@@ -11,6 +11,7 @@ fingerprint takes in more than needed, never less.
 from __future__ import annotations
 
 import ast
+import functools
 import hashlib
 import os
 from dataclasses import dataclass, field
@@ -33,7 +34,13 @@ class ModuleInfo:
     imports: dict[str, Import] = field(default_factory=dict)      # module-level alias -> import
     star: list[str] = field(default_factory=list)                 # `from X import *`
     preamble: str = ""          # digest of module-level statements that bind no name
-    module_digest: str = ""
+    tree: ast.Module | None = field(default=None, repr=False)   # docstrings stripped
+
+    @functools.cached_property
+    def module_digest(self) -> str:
+        """The whole module's digest, for a module used as a value: computed on first use
+        (dumping a whole module's AST is most of the cost of parsing it)."""
+        return _digest(self.tree)
 
 
 def _strip_docstrings(tree: ast.AST) -> None:
@@ -148,7 +155,7 @@ class Fingerprinter:
             line = getattr(exc, "lineno", "?")
             raise PipelineError(f"cannot parse {path}:{line}: {getattr(exc, 'msg', exc)}") from None
         _strip_docstrings(tree)
-        info = ModuleInfo(module, path, is_package, module_digest=_digest(tree))
+        info = ModuleInfo(module, path, is_package, tree=tree)
         preamble = hashlib.sha256()
         for stmt in tree.body:
             inner = _inner_statements(stmt) if isinstance(stmt, _COMPOUND) else []

@@ -19,7 +19,7 @@ from pipeline.errors import PipelineError
 _KEY = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*(\.[A-Za-z0-9_\-]+)*$")
 
 
-class Loader(yaml.SafeLoader):
+class Loader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):   # libyaml's parser when built with it
     """YAML 1.1 reads 1.45e5 as a string; scientists write moduli that way."""
 
 

@@ -36,6 +36,10 @@ def test_round_trip_and_record(tmp_path):
     assert store.record("k1")["digest"] == rec["digest"]
     with Artifact(store.path("k1")) as a:
         assert sorted(a) == ["force", "images", "model/conv.weight", "names", "scalar"]
+        assert "model/conv.weight" in a and "model" not in a and "nope" not in a and len(a) == 5
+        with pytest.raises(KeyError, match=r"'model' not in artifact k1.h5 \(has \['force', 'images', "
+                                           r"'model/conv.weight', 'names', 'scalar'\]\)"):
+            a["model"]          # a group, not a dataset
         assert a["images"].shape == (12, 5, 5) and a["images"][4:8].max() == 1
         assert np.asarray(a["force"]).tolist() == [[0, 1, 2], [3, 4, 5]]
         assert list(a["names"][()]) == ["cone", "sphere"]
