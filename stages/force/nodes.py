@@ -83,15 +83,30 @@ def _read_runs(art, key: str, runs) -> list[np.ndarray]:
     return [np.asarray(art[key][a:b]) for a, b in runs]
 
 
+def _checkpoint(path: str | None):
+    """The node's training checkpoint (stages.force.train.Checkpoint) at the engine's path."""
+    from stages.force.train import Checkpoint
+    return Checkpoint(path) if path else None
+
+
+def _split_timing(history: Mapping, ckpt) -> tuple[dict, dict]:
+    """split_timing, plus the steps the node's fits resumed from (timing: resumed_at_step)."""
+    kept, timing = split_timing(history)
+    if ckpt is not None and ckpt.resumed:
+        timing["resumed_at_step"] = dict(ckpt.resumed)
+    return kept, timing
+
+
 # ---------------------------------------------------------------------------- training nodes
 
 def fit_own(*, markers: Mapping, skin: str, train_indenters: Sequence[str], config: Mapping,
-            steps: int, batch_size: int, lr: float, seed: int) -> dict:
+            steps: int, batch_size: int, lr: float, seed: int, checkpoint: str | None = None) -> dict:
     """Node `own[skin]`: the regressor on the skin's own images and labels.
 
     Trained on the contacts of `train_indenters` (source-only model when the skin is a source,
     the oracle when it is a target).  Returns weights/..., attrs {config, skin,
-    train_indenters, history} and figures/loss.
+    train_indenters, history} and figures/loss.  `checkpoint` (the engine's): the training
+    resumes from there after an interruption (stages.force.train.Checkpoint).
     """
     from stages.force.model import to_arrays
     from stages.force.train import fit, loss_figure, make_sequences
@@ -103,10 +118,12 @@ def fit_own(*, markers: Mapping, skin: str, train_indenters: Sequence[str], conf
     force = np.asarray(markers["force"], np.float32)
     seqs = make_sequences(_read_runs(markers, "images", runs), [force[a:b] for a, b in runs],
                           reference, model_cfg)
+    ckpt = _checkpoint(checkpoint)
     model, history = fit(seqs, model_cfg, steps=int(steps), batch_size=int(batch_size), lr=float(lr),
-                         seed=int(seed), seq_len=int(train["seq_len"]), desc=f"own[{skin}]")
+                         seed=int(seed), seq_len=int(train["seq_len"]), desc=f"own[{skin}]",
+                         checkpoint=ckpt, label="own")
     model.set_reference(reference)
-    kept, timing = split_timing(history)
+    kept, timing = _split_timing(history, ckpt)
     return {"weights": to_arrays(model),
             "attrs": {"config": model.config, "train": train, "skin": skin,
                       "train_indenters": list(train_indenters), "history": kept},
@@ -119,7 +136,8 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
                  seed: int, finetune_steps: int, train_indenters: Sequence[str] | None = None,
                  compensation: str = "normal", compensation_depth: str = "shared",
                  target_markers: Mapping | None = None,
-                 source_spec: Mapping | None = None, target_spec: Mapping | None = None) -> dict:
+                 source_spec: Mapping | None = None, target_spec: Mapping | None = None,
+                 checkpoint: str | None = None) -> dict:
     """Node `transfer[source,target]`: regressors on the source's sequences translated into the
     target's style (images; reference = the target's), trained with the source's labels
     (genforce) and with the labels compensated to the target's material (genforce_comp).
@@ -135,7 +153,9 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     `compensation_depth`: "shared" evaluates both curves at the source's normalised depth;
     "paired" evaluates the target's at the target's own normalised depth of the paired frame,
     k times the source's (compensation.depth_ratio, from the normalised depths of the source's
-    and `target_markers`' collections; no target label is read).
+    and `target_markers`' collections; no target label is read).  `checkpoint` (the
+    engine's): an interrupted node re-runs none of its finished fits and resumes the one it
+    was in (stages.force.train.Checkpoint).
     """
     from stages.force.compensation import (compensate, curves_figure, curves_from_calibration,
                                            label_scale, loading_mask, shear_ratio)
@@ -160,7 +180,9 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
                   lr=float(lr), seed=int(seed), seq_len=int(train["seq_len"]),
                   finetune_lr_factor=float(train["finetune_lr_factor"]))
     name = f"transfer[{source}->{target}]"
-    genforce, hist = fit_two_stage(seqs, model_cfg, desc=f"{name} genforce", **kwargs)
+    ckpt = _checkpoint(checkpoint)
+    genforce, hist = fit_two_stage(seqs, model_cfg, desc=f"{name} genforce", checkpoint=ckpt,
+                                   label="genforce", **kwargs)
     genforce.set_reference(reference)
     weights = to_arrays(genforce)
     histories = {"genforce": hist}
@@ -170,14 +192,15 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     else:
         comp_seqs = [ContactSequence(s.inputs, comp[a:b]) for s, (a, b) in zip(seqs, runs)]
         genforce_comp, histories["genforce_comp"] = fit_two_stage(
-            comp_seqs, model_cfg, desc=f"{name} genforce_comp", **kwargs)
+            comp_seqs, model_cfg, desc=f"{name} genforce_comp", checkpoint=ckpt,
+            label="genforce_comp", **kwargs)
         genforce_comp.set_reference(reference)
         weights_comp = to_arrays(genforce_comp)
         models["genforce_comp"] = genforce_comp
     rows = np.concatenate([np.arange(a, b) for a, b in runs])
     scale = (np.ones(rows.size) if identity else
              label_scale(depth[rows], loading[rows], src_curves, tgt_curves, depth_ratio=k))
-    kept, timing = split_timing(histories)
+    kept, timing = _split_timing(histories, ckpt)
     figures = {"loss": loss_figure(histories, name),
                "compensation": curves_figure({source: (source_calibration, src_curves),
                                               target: (target_calibration, tgt_curves)},
@@ -204,7 +227,7 @@ DEPTH_MODES = ("shared", "paired")
 def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, config: Mapping,
                       steps: int, batch_size: int, lr: float, finetune_steps: int,
                       train_indenters: Sequence[str] | None = None, model_pair=None,
-                      source: str = "", target: str = "") -> dict:
+                      source: str = "", target: str = "", checkpoint: str | None = None) -> dict:
     """Nodes `transfer_seed[seed]` and `hetero_seed[source,target,seed]`: `transfer`'s
     genforce_comp model trained again from another seed: the same translated contacts of
     `train_indenters`, the same labels (compensated with the curves, mode and depth ratio
@@ -213,7 +236,7 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
     control study's ensemble; model_pair: transfer's (source, target), which the graph's
     templates read), and their spread is the chance in a study's figure (hetero; source,
     target: the fan-out's values, which transfer's attrs hold too).  Returns genforce_comp
-    weights and attrs {config, source, target, seed, history}."""
+    weights and attrs {config, source, target, seed, history}.  `checkpoint`: as fit_transfer's."""
     from stages.force.compensation import Curves, compensate, loading_mask
     from stages.force.model import to_arrays
     from stages.force.train import fit_two_stage, make_sequences
@@ -233,12 +256,14 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
                            depth_ratio=float(info["depth_ratio"]))
     seqs = make_sequences(_read_runs(translated, "images", runs), [force[a:b] for a, b in runs],
                           reference, model_cfg)
+    ckpt = _checkpoint(checkpoint)
     model, history = fit_two_stage(seqs, model_cfg, steps=int(steps), finetune_steps=int(finetune_steps),
                                    batch_size=int(batch_size), lr=float(lr), seed=int(seed),
                                    seq_len=int(train["seq_len"]),
-                                   finetune_lr_factor=float(train["finetune_lr_factor"]), desc=name)
+                                   finetune_lr_factor=float(train["finetune_lr_factor"]), desc=name,
+                                   checkpoint=ckpt, label="seed")
     model.set_reference(reference)
-    kept, timing = split_timing(history)
+    kept, timing = _split_timing(history, ckpt)
     return {"genforce_comp": to_arrays(model),
             "attrs": {"config": model.config, "train": train, "source": info["source"],
                       "target": info["target"], "seed": int(seed), "history": kept},

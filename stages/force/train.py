@@ -14,10 +14,19 @@ windows up to 24 frames) takes 10-20 s.
 
 Two-stage schedules (pretrain, then fine-tune) are two :func:`fit` calls, the second with
 ``init=`` the first's weights and a smaller ``lr``.
+
+A node that trains several fits hands them one :class:`Checkpoint` (the file the engine gives
+a node with a `checkpoint` parameter): each fit, named by a label, saves its whole state there
+once a minute and its result when it ends, so a node interrupted in its third fit re-runs
+neither of the first two and resumes the third where it was, ending with the weights an
+uninterrupted run gives.
 """
 from __future__ import annotations
 
+import json
+import os
 import time
+import warnings
 from dataclasses import dataclass
 from typing import Mapping, Sequence
 
@@ -81,10 +90,80 @@ def _lr_at(step: int, steps: int, lr: float) -> float:
     return lr * 0.5 * (1.0 + np.cos(np.pi * (step - warm) / max(1, steps - warm)))
 
 
+CHECKPOINT_EVERY_S = 60.0   # Checkpoint: seconds between saves of a fit's training state
+
+
+class Checkpoint:
+    """One file holding a node's training progress: the result of every fit that ended (by
+    label: weights, config, history) and the whole state of the fit in progress (weights,
+    SGD momenta, step, losses so far, the batch sampler's and torch's random streams).
+
+    The file is rewritten whole (a temporary file renamed over it, so a kill mid-write leaves
+    the previous one) and loads with torch.load(weights_only=True): tensors and plain values,
+    no code.  One that cannot be read is renamed <path>.bad with a warning and the node's
+    fits start over.  ``resumed`` maps the label of a fit that continued a saved state to the
+    step it continued from (a node's timing, outside its content).
+    """
+
+    def __init__(self, path: str | os.PathLike, every_s: float | None = None):
+        self.path = os.fspath(path)
+        self.every_s = float(CHECKPOINT_EVERY_S if every_s is None else every_s)
+        self.resumed: dict[str, int] = {}
+        self.state = {"done": {}, "current": None}
+        if os.path.exists(self.path):
+            try:
+                state = torch.load(self.path, map_location="cpu", weights_only=True)
+                if not isinstance(state.get("done"), dict) or "current" not in state:
+                    raise ValueError("not a force-fit checkpoint")
+                self.state = state
+            except Exception as exc:  # noqa: BLE001 - any unreadable checkpoint: start over, keep it aside
+                os.replace(self.path, f"{self.path}.bad")
+                warnings.warn(f"checkpoint {self.path} set aside as .bad and training starts over: "
+                              f"{type(exc).__name__}: {exc}", stacklevel=2)
+
+    def _save(self) -> None:
+        tmp = f"{self.path}.tmp"
+        torch.save(self.state, tmp)
+        os.replace(tmp, self.path)
+
+    def finished(self, label: str) -> tuple[ForceRegressor, dict] | None:
+        """The model and history of the fit `label` when it ended before, else None."""
+        done = self.state["done"].get(label)
+        if done is None:
+            return None
+        arrays = {k: v.numpy() for k, v in done["weights"].items()}
+        return from_arrays(arrays, json.loads(done["config"])), json.loads(done["history"])
+
+    def finish(self, label: str, model: ForceRegressor, history: Mapping) -> None:
+        self.state["done"][label] = {"weights": {k: torch.from_numpy(v) for k, v in to_arrays(model).items()},
+                                     "config": json.dumps(model.config),
+                                     "history": json.dumps(history)}
+        self.state["current"] = None
+        self._save()
+
+    def saved(self, label: str, steps: int, batch_size: int) -> dict | None:
+        """The saved state of fit `label` if it was saved by a fit of that length and batch."""
+        cur = self.state["current"]
+        if cur is None or cur["label"] != label:
+            return None
+        if (int(cur["steps"]), int(cur["batch_size"])) != (int(steps), int(batch_size)):
+            warnings.warn(f"checkpoint {self.path}: fit '{label}' was saved for {cur['steps']} steps "
+                          f"of {cur['batch_size']}, not {steps} of {batch_size}; it starts over",
+                          stacklevel=3)
+            return None
+        self.resumed[label] = int(cur["step"])
+        return cur
+
+    def progress(self, state: dict) -> None:
+        self.state["current"] = state
+        self._save()
+
+
 def fit(sequences: list[ContactSequence], config: Mapping | None = None, *, steps: int,
         batch_size: int, lr: float, seed: int = 0, seq_len: int = 32, init: Mapping | None = None,
         momentum: float = 0.9, weight_decay: float = 5e-4, threads: int | None = None,
-        desc: str = "force fit") -> tuple[ForceRegressor, dict]:
+        desc: str = "force fit", checkpoint: Checkpoint | None = None,
+        label: str = "fit") -> tuple[ForceRegressor, dict]:
     """Train a regressor; returns (model in eval mode, on the CPU, history).  It trains on
     stages.common.torch_device (the GPU when torch sees one).
 
@@ -92,11 +171,16 @@ def fit(sequences: list[ContactSequence], config: Mapping | None = None, *, step
     ``config``.  An "auto" force range is set from the sequences' labels (model.resolve_range).
     history: loss (per step, normalised L1), seconds, samples_per_s (contact windows),
     frames_per_s, clipped_fraction (labels outside the force range).
+    ``checkpoint``: where the fit named ``label`` saves its state every checkpoint.every_s
+    seconds (at a step's end) and its result at its end; a fit that finds its result there
+    returns it, one that finds its state resumes from it (:class:`Checkpoint`).
     """
     if not sequences:
         raise ValueError("fit: no training contact sequences")
     if steps < 0 or batch_size < 1 or seq_len < 1:
         raise ValueError(f"fit: steps {steps}, batch_size {batch_size}, seq_len {seq_len} out of range")
+    if checkpoint is not None and (done := checkpoint.finished(label)) is not None:
+        return done
     all_force = np.concatenate([s.force for s in sequences])
     config = resolve_range(config, all_force)
     torch.manual_seed(seed)
@@ -108,13 +192,30 @@ def fit(sequences: list[ContactSequence], config: Mapping | None = None, *, step
     dev = torch_device()
     model.to(dev)
     opt = torch.optim.SGD(model.parameters(), lr=lr, momentum=momentum, weight_decay=weight_decay)
-    losses, frames = [], 0
-    t0 = time.perf_counter()
+    losses, frames, start, before = [], 0, 0, 0.0
+    saved = checkpoint.saved(label, steps, batch_size) if checkpoint is not None else None
+    if saved is not None:
+        model.load_state_dict(saved["model"])
+        opt.load_state_dict(saved["opt"])
+        rng.bit_generator.state = saved["rng"]
+        torch.set_rng_state(saved["torch"])
+        start, frames, before = int(saved["step"]), int(saved["frames"]), float(saved["seconds"])
+        losses = saved["loss"].tolist()
+
+    def save(step: int) -> None:
+        checkpoint.progress({
+            "label": label, "steps": int(steps), "batch_size": int(batch_size), "step": step,
+            "frames": frames, "seconds": before + time.perf_counter() - t0,
+            "loss": torch.tensor(losses, dtype=torch.float64), "model": model.state_dict(),
+            "opt": opt.state_dict(), "rng": rng.bit_generator.state, "torch": torch.get_rng_state()})
+
+    t0 = last = time.perf_counter()
     with torch_threads(threads):
         model.train()
-        for step in tqdm(range(steps), desc=desc, disable=None, leave=False):
+        for step in tqdm(range(start, steps), desc=desc, disable=None, leave=False,
+                         initial=start, total=steps):
             for group in opt.param_groups:
-                group["lr"] = _lr_at(step, steps, lr)
+                group["lr"] = float(_lr_at(step, steps, lr))
             x, y = _batch(rng, sequences, targets, batch_size, seq_len)
             x, y = x.to(dev), y.to(dev)
             pred, _ = model(x)
@@ -125,29 +226,39 @@ def fit(sequences: list[ContactSequence], config: Mapping | None = None, *, step
             opt.step()
             losses.append(loss.item())
             frames += x.shape[0] * x.shape[1]
-    seconds = time.perf_counter() - t0
+            if checkpoint is not None and step + 1 < steps and \
+                    time.perf_counter() - last >= checkpoint.every_s:
+                save(step + 1)   # at a step's end: every random stream is where step + 1 starts
+                last = time.perf_counter()
+    seconds = before + time.perf_counter() - t0
     model.cpu().eval()
     history = {"loss": losses, "seconds": seconds, "steps": int(steps),
                "samples_per_s": steps * batch_size / seconds if seconds > 0 else 0.0,
                "frames_per_s": frames / seconds if seconds > 0 else 0.0,
                "clipped_fraction": clipped, "contacts": len(sequences),
                "frames": int(all_force.shape[0])}
+    if checkpoint is not None:
+        checkpoint.finish(label, model, history)
     return model, history
 
 
 def fit_two_stage(sequences: list[ContactSequence], config: Mapping | None = None, *, steps: int,
                   finetune_steps: int, batch_size: int, lr: float, seed: int = 0,
                   seq_len: int = 32, finetune_lr_factor: float = 0.1, init: Mapping | None = None,
-                  desc: str = "force fit") -> tuple[ForceRegressor, dict]:
+                  desc: str = "force fit", checkpoint: Checkpoint | None = None,
+                  label: str = "fit") -> tuple[ForceRegressor, dict]:
     """Pretrain (`steps` at `lr`), then fine-tune the result (`finetune_steps` at
-    `lr * finetune_lr_factor`) on the same sequences: the paper's two stages (0.1, then 1e-3)."""
+    `lr * finetune_lr_factor`) on the same sequences: the paper's two stages (0.1, then 1e-3).
+    With a `checkpoint`, the stages are the fits `<label>/pretrain` and `<label>/finetune`."""
     model, hist = fit(sequences, config, steps=steps, batch_size=batch_size, lr=lr, seed=seed,
-                      seq_len=seq_len, init=init, desc=f"{desc} (pretrain)")
+                      seq_len=seq_len, init=init, desc=f"{desc} (pretrain)",
+                      checkpoint=checkpoint, label=f"{label}/pretrain")
     history = {"pretrain": hist}
     if finetune_steps > 0:
         model, hist2 = fit(sequences, model.config, steps=finetune_steps, batch_size=batch_size,
                            lr=lr * finetune_lr_factor, seed=seed + 1, seq_len=seq_len,
-                           init=to_arrays(model), desc=f"{desc} (fine-tune)")
+                           init=to_arrays(model), desc=f"{desc} (fine-tune)",
+                           checkpoint=checkpoint, label=f"{label}/finetune")
         history["finetune"] = hist2
     return model, history
 

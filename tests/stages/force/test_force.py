@@ -527,3 +527,86 @@ def test_force_study_scores_the_seen_indenters_too(nodes_out, skins):
     assert bytes(out["figures"]["seen_unseen"][:8]) == PNG
     with pytest.raises(ValueError, match=r"\['torus'\] are both seen and test indenters"):
         force_study(**kw, seen_indenters=["sphere", "torus"])
+
+
+# ---------------------------------------------------------------------------- checkpoints
+
+def _transfer_run(skins, tiny_config, checkpoint=None, steps=6):
+    """fit_transfer with compensation: four fits (genforce and genforce_comp, two stages each)."""
+    return fit_transfer(translated=skins["A"], source_calibration=_calibration_art(1.0),
+                        target_calibration=_calibration_art(2.0), source="B", target="A",
+                        config={**tiny_config, "seq_len": 10}, steps=steps, batch_size=2, lr=0.05,
+                        seed=0, finetune_steps=3, train_indenters=["sphere", "prism", "cone"],
+                        checkpoint=checkpoint)
+
+
+def _counting_batches(monkeypatch, die_at=None):
+    """Count the fits' batch draws; raise KeyboardInterrupt (a kill) on draw number `die_at`."""
+    import stages.force.train as train
+    real, calls = train._batch, []
+
+    def batch(*a, **k):
+        calls.append(1)
+        if len(calls) == die_at:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+    monkeypatch.setattr(train, "_batch", batch)
+    return calls
+
+
+def _same_node_output(a, b):
+    for method in ("genforce", "genforce_comp"):
+        assert set(a[method]) == set(b[method])
+        for k, v in a[method].items():
+            np.testing.assert_array_equal(v, b[method][k], err_msg=f"{method} {k}")
+    assert a["attrs"] == b["attrs"]          # histories (every step's loss), ranges, curves
+
+
+def test_transfer_killed_in_its_third_fit_resumes_it_and_ends_as_if_never_stopped(
+        skins, tiny_config, tmp_path, monkeypatch):
+    """Draws 1-6 are genforce's pretrain, 7-9 its fine-tune, 10-15 genforce_comp's pretrain:
+    killed at draw 13 (a checkpoint at every step's end), the node run again re-runs neither
+    genforce fit, resumes genforce_comp's pretrain at its step 3 (6 draws left with the
+    fine-tune's 3) and gives the uninterrupted node's weights and losses bit for bit."""
+    import stages.force.train as train
+    calls = _counting_batches(monkeypatch)
+    whole = _transfer_run(skins, tiny_config)
+    assert len(calls) == 18 and "resumed_at_step" not in whole["timing"]
+    monkeypatch.setattr(train, "CHECKPOINT_EVERY_S", 0.0)
+    path = tmp_path / "k.ckpt"
+    _counting_batches(monkeypatch, die_at=13)
+    with pytest.raises(KeyboardInterrupt):
+        _transfer_run(skins, tiny_config, checkpoint=str(path))
+    saved = torch.load(path, weights_only=True)
+    assert sorted(saved["done"]) == ["genforce/finetune", "genforce/pretrain"]
+    assert (saved["current"]["label"], saved["current"]["step"]) == ("genforce_comp/pretrain", 3)
+    calls = _counting_batches(monkeypatch)
+    again = _transfer_run(skins, tiny_config, checkpoint=str(path))
+    assert len(calls) == 6
+    assert again["timing"]["resumed_at_step"] == {"genforce_comp/pretrain": 3}
+    _same_node_output(again, whole)
+
+
+def test_an_unreadable_or_foreign_force_checkpoint_is_set_aside_or_ignored(skins, tiny_config, tmp_path,
+                                                                           monkeypatch):
+    """A truncated file is renamed .bad with a warning; a state saved by a 6-step pretrain does
+    not serve an 8-step one (warning); either way the node trains from scratch, as without."""
+    import stages.force.train as train
+    whole = _transfer_run(skins, tiny_config, steps=8)
+    path = tmp_path / "k.ckpt"
+    path.write_bytes(b"PK\x03\x04 truncated")
+    with pytest.warns(UserWarning, match=r"k\.ckpt set aside as \.bad and training starts over"):
+        out = _transfer_run(skins, tiny_config, checkpoint=str(path), steps=8)
+    assert (tmp_path / "k.ckpt.bad").read_bytes() == b"PK\x03\x04 truncated"
+    _same_node_output(out, whole)
+    path.unlink()
+    monkeypatch.setattr(train, "CHECKPOINT_EVERY_S", 0.0)
+    _counting_batches(monkeypatch, die_at=3)
+    with pytest.raises(KeyboardInterrupt):
+        _transfer_run(skins, tiny_config, checkpoint=str(path), steps=6)
+    _counting_batches(monkeypatch)
+    with pytest.warns(UserWarning, match=r"fit 'genforce/pretrain' was saved for 6 steps of 2, "
+                                         r"not 8 of 2; it starts over"):
+        out = _transfer_run(skins, tiny_config, checkpoint=str(path), steps=8)
+    assert "resumed_at_step" not in out["timing"]
+    _same_node_output(out, whole)
