@@ -90,3 +90,33 @@ def split_timing(record: Mapping) -> tuple[dict, dict]:
         else:
             kept[k] = v
     return kept, timing
+
+
+def save_state(path: str, state: dict) -> None:
+    """torch.save a training state to a temporary file and rename it over `path`: a kill
+    mid-write leaves the previous file whole."""
+    import torch
+    tmp = f"{path}.tmp"
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+
+
+def load_state(path: str, check=None, *, stacklevel: int = 1) -> dict | None:
+    """The training state save_state wrote at `path` (loaded with weights_only: tensors and
+    plain values, no code), or None when there is none.  One that cannot be read, or that
+    `check(state)` rejects by raising, is renamed <path>.bad with a warning (at `stacklevel`
+    counted from load_state's caller) and None is returned: training starts over."""
+    import warnings
+    import torch
+    if not os.path.exists(path):
+        return None
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        if check is not None:
+            check(state)
+    except Exception as exc:  # noqa: BLE001 - any unreadable checkpoint: start over, keep it aside
+        os.replace(path, f"{path}.bad")
+        warnings.warn(f"checkpoint {path} set aside as .bad and training starts over: "
+                      f"{type(exc).__name__}: {exc}", stacklevel=stacklevel + 1)
+        return None
+    return state

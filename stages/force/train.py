@@ -34,7 +34,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from stages.common import torch_device, torch_threads
+from stages.common import load_state, save_state, torch_device, torch_threads
 from stages.force.model import (ForceRegressor, from_arrays, model_config, prepare, resolve_range,
                                 to_arrays)
 
@@ -93,6 +93,11 @@ def _lr_at(step: int, steps: int, lr: float) -> float:
 CHECKPOINT_EVERY_S = 60.0   # Checkpoint: seconds between saves of a fit's training state
 
 
+def _check_fits(state: dict) -> None:
+    if not isinstance(state.get("done"), dict) or "current" not in state:
+        raise ValueError("not a force-fit checkpoint")
+
+
 class Checkpoint:
     """One file holding a node's training progress: the result of every fit that ended (by
     label: weights, config, history) and the whole state of the fit in progress (weights,
@@ -109,22 +114,7 @@ class Checkpoint:
         self.path = os.fspath(path)
         self.every_s = float(CHECKPOINT_EVERY_S if every_s is None else every_s)
         self.resumed: dict[str, int] = {}
-        self.state = {"done": {}, "current": None}
-        if os.path.exists(self.path):
-            try:
-                state = torch.load(self.path, map_location="cpu", weights_only=True)
-                if not isinstance(state.get("done"), dict) or "current" not in state:
-                    raise ValueError("not a force-fit checkpoint")
-                self.state = state
-            except Exception as exc:  # noqa: BLE001 - any unreadable checkpoint: start over, keep it aside
-                os.replace(self.path, f"{self.path}.bad")
-                warnings.warn(f"checkpoint {self.path} set aside as .bad and training starts over: "
-                              f"{type(exc).__name__}: {exc}", stacklevel=2)
-
-    def _save(self) -> None:
-        tmp = f"{self.path}.tmp"
-        torch.save(self.state, tmp)
-        os.replace(tmp, self.path)
+        self.state = load_state(self.path, _check_fits, stacklevel=2) or {"done": {}, "current": None}
 
     def finished(self, label: str) -> tuple[ForceRegressor, dict] | None:
         """The model and history of the fit `label` when it ended before, else None."""
@@ -139,7 +129,7 @@ class Checkpoint:
                                      "config": json.dumps(model.config),
                                      "history": json.dumps(history)}
         self.state["current"] = None
-        self._save()
+        save_state(self.path, self.state)
 
     def saved(self, label: str, steps: int, batch_size: int) -> dict | None:
         """The saved state of fit `label` if it was saved by a fit of that length and batch."""
@@ -156,7 +146,7 @@ class Checkpoint:
 
     def progress(self, state: dict) -> None:
         self.state["current"] = state
-        self._save()
+        save_state(self.path, self.state)
 
 
 def fit(sequences: list[ContactSequence], config: Mapping | None = None, *, steps: int,

@@ -36,6 +36,7 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
+from stages.common import load_state, save_state
 from stages.m2m.model import M2MNet, alphas_cumprod, device
 
 ONESTEP_FRACTION = 0.5     # share of each batch trained at the one-step timestep T-1
@@ -171,34 +172,16 @@ def loss_fn(logits: torch.Tensor, target: torch.Tensor, reference: torch.Tensor 
 CHECKPOINT_EVERY_S = 60.0   # fit(checkpoint=...): seconds between saves of the training state
 
 
-def _save_checkpoint(path: str, state: dict) -> None:
-    """torch.save to a temporary file and rename: a kill mid-write leaves the last checkpoint."""
-    import os
-    tmp = f"{path}.tmp"
-    torch.save(state, tmp)
-    os.replace(tmp, path)
-
-
 def _load_checkpoint(path: str, *, steps: int, batch_size: int) -> dict | None:
     """The state saved by fit at `path`, or None when there is none; one that cannot be read or
     was saved by a fit of another length or batch is renamed <path>.bad with a warning."""
-    import os
-    import warnings
-    if not os.path.exists(path):
-        return None
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)   # tensors, no code
+    def check(state: dict) -> None:
         if (int(state["steps"]), int(state["batch_size"])) != (int(steps), int(batch_size)):
             raise ValueError(f"saved for {state['steps']} steps of {state['batch_size']}, "
                              f"not {steps} of {batch_size}")
         if not 0 < int(state["step"]) < int(steps):
             raise ValueError(f"step {state['step']} is outside 1..{steps - 1}")
-    except Exception as exc:  # noqa: BLE001 - any unreadable checkpoint: start over, keep it aside
-        os.replace(path, f"{path}.bad")
-        warnings.warn(f"checkpoint {path} set aside as .bad and training starts over: "
-                      f"{type(exc).__name__}: {exc}", stacklevel=3)
-        return None
-    return state
+    return load_state(path, check, stacklevel=3)
 
 
 def noisy_input(target: torch.Tensor, config, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
@@ -255,7 +238,7 @@ def fit(net: M2MNet, config, batches: Callable, *, steps: int, batch_size: int, 
             losses[:start] = state["loss"][:start].numpy()
 
     def save(i: int) -> None:
-        _save_checkpoint(checkpoint, {
+        save_state(checkpoint, {
             "steps": int(steps), "batch_size": int(batch_size), "step": i,
             "seconds": before + time.perf_counter() - t0, "loss": torch.from_numpy(losses.copy()),
             "net": net.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
