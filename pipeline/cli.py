@@ -23,6 +23,16 @@ class _Parser(argparse.ArgumentParser):
         raise PipelineError(message)
 
 
+def _count(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}") from None
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {n}")
+    return n
+
+
 def _common(p: argparse.ArgumentParser, *, params: bool = True, targets: bool = False) -> None:
     p.add_argument("--store", help="artifact store directory (default: artifacts/ or $PIPELINE_STORE)")
     if params:
@@ -67,7 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--json", action="store_true")
     gc = sub.add_parser("gc", help="remove artifacts no ref or recent run uses")
     _common(gc)
-    gc.add_argument("--keep-runs", type=int, default=5)
+    gc.add_argument("--keep-runs", type=_count, default=5, help="run logs whose artifacts gc keeps (default 5)")
     gc.add_argument("--dry-run", action="store_true")
     dv = sub.add_parser("dvc", help="write dvc.yaml from the DAG")
     _common(dv, params=False)
@@ -92,8 +102,13 @@ class Context:
         from pipeline.store import Store
         self.args = args
         self.project = find_project()
-        store = args.store or os.environ.get("PIPELINE_STORE") or self.project.store_dir
-        self.store = Store(store)
+        named = args.store or os.environ.get("PIPELINE_STORE")
+        self.store = Store(named or self.project.store_dir)
+        if self.store.root.exists() and not self.store.root.is_dir():
+            raise PipelineError(f"store {self.store.root} is not a directory")
+        if named and args.verb in READS_STORE and not self.store.root.is_dir():  # a typo, not an empty store
+            raise PipelineError(f"no store at {self.store.root}: nothing is built there yet "
+                                "(`pipeline run` builds it)")
 
     def scheduler(self):
         from pipeline import params as P
@@ -231,10 +246,16 @@ def _resolve(ctx: Context, what: str) -> dict:
 def cmd_show(ctx: Context) -> int:
     from pipeline.artifact import Artifact
     rec = _resolve(ctx, ctx.args.what)
-    with Artifact(ctx.store.path(rec["key"])) as a:
-        info = {"name": rec.get("instance"), "key": rec["key"], "path": str(a.path),
-                "datasets": {n: {"shape": list(a[n].shape), "dtype": str(a[n].dtype)} for n in a},
-                "attrs": a.attrs, "provenance": a.provenance}
+    try:
+        with Artifact(ctx.store.path(rec["key"])) as a:
+            info = {"name": rec.get("instance"), "key": rec["key"], "path": str(a.path),
+                    "datasets": {n: {"shape": list(a[n].shape), "dtype": str(a[n].dtype)} for n in a},
+                    "attrs": a.attrs, "provenance": a.provenance}
+    except PipelineError:
+        raise
+    except Exception:  # unreadable though its size and mtime match its record: check content
+        ctx.store.check_damage(rec["key"], rec.get("instance") or rec["key"])
+        raise
     if ctx.args.json:
         _print_json(info)
         return 0
@@ -352,6 +373,9 @@ def cmd_report(ctx: Context) -> int:
     return 0
 
 
+# verbs that only read what is built: a named store that does not exist is a typo
+READS_STORE = {"ls", "show", "get", "verify", "gc", "metrics", "report"}
+
 VERBS = {"run": cmd_run, "status": cmd_status, "dag": cmd_dag, "ls": cmd_ls, "show": cmd_show,
          "get": cmd_get, "verify": cmd_verify, "gc": cmd_gc, "dvc": cmd_dvc, "metrics": cmd_metrics,
          "report": cmd_report}
@@ -375,6 +399,10 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:  # `pipeline ls | head`
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    except OSError as exc:  # the store or an output folder: read-only, full, vanished
+        what = f" {exc.filename}" if exc.filename else ""
+        print(f"pipeline: error: cannot use{what}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
 
 
 def entry() -> None:

@@ -196,7 +196,17 @@ class Graph:
         resolved, keys = {}, []
         for arg, key in node.params.items():
             dotted = key.format(**env)
-            resolved[arg] = P.get(params, dotted)
+            try:
+                resolved[arg] = P.get(params, dotted)
+            except PipelineError:
+                if dotted == key:
+                    raise
+                used = {k: v for k, v in env.items() if "{" + k + "}" in key}
+                grids = [spec for spec in node.grid.values() if isinstance(spec, str)]
+                raise PipelineError(
+                    f"node '{node.name}' has no param '{dotted}' for "
+                    f"{', '.join(f'{k}={v}' for k, v in used.items())}: is that value in "
+                    f"{' / '.join(grids) or 'its grid'} a typo?") from None
             keys.append(dotted)
         keys += [k.strip() for spec in node.grid.values() if isinstance(spec, str) for k in spec.split("+")]
         inst = Instance(node, tuple(bindings), resolved, param_keys=keys)

@@ -39,6 +39,8 @@ def load_baseline(path: Path) -> dict:
         doc = yaml.safe_load(Path(path).read_text())
     except OSError as exc:
         raise PipelineError(f"cannot read baseline {path}: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise PipelineError(f"baseline {path} is not UTF-8 text (byte {exc.start})") from None
     except yaml.YAMLError as exc:
         raise PipelineError(f"malformed baseline {path}: {str(exc).splitlines()[0]}") from None
     if not isinstance(doc, dict) or not isinstance(doc.get("metrics"), dict):

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import difflib
+import math
 import re
 from pathlib import Path
 from typing import Any
@@ -62,7 +63,10 @@ def _load_yaml(path: Path) -> tuple[Any, dict[str, int]]:
                 lines[key] = k.start_mark.line + 1
                 walk(v, key)
 
-    walk(node, "")
+    try:
+        walk(node, "")
+    except RecursionError:
+        raise PipelineError(f"params file {path}: a YAML alias contains itself (recursive anchor)") from None
     if data is None:
         data = {}
     if not isinstance(data, dict):
@@ -97,6 +101,8 @@ def _check_value(key: str, default: Any, value: Any, where: str) -> Any:
     elif isinstance(default, float):
         ok = isinstance(value, (int, float))
         value = float(value) if ok else value
+        if ok and not math.isfinite(value) and math.isfinite(default):
+            raise PipelineError(f"param '{key}' ({where}) must be a finite number, got {value!r}")
     elif isinstance(default, int):
         ok = isinstance(value, int)
     elif isinstance(default, str):

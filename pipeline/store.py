@@ -35,6 +35,23 @@ def _atomic_write_text(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
+def _read_json(path: Path, kind: type = dict):
+    """A bookkeeping file's JSON if it parses to `kind`, else None (hints are rebuilt, never
+    trusted when damaged)."""
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return doc if isinstance(doc, kind) else None
+
+
+_RECORD_FIELDS = {"key": str, "digest": str, "bytes": int, "mtime_ns": int}
+
+
+def _valid_record(rec) -> bool:
+    return isinstance(rec, dict) and all(isinstance(rec.get(f), t) for f, t in _RECORD_FIELDS.items())
+
+
 def safe_name(instance: str) -> str:
     """'render[sensor=a]' -> 'render@sensor=a' (a file name with no brackets)."""
     return instance.replace("[", "@").replace("]", "").replace("/", "_")
@@ -85,9 +102,8 @@ class Store:
             st = path.stat()
         except OSError:
             return None
-        try:
-            rec = json.loads(self._index_path(key).read_text())
-        except (OSError, ValueError):
+        rec = _read_json(self._index_path(key))
+        if not _valid_record(rec) or rec["key"] != key:
             rec = None
         if rec is not None and (not check or (rec["bytes"] == st.st_size and rec["mtime_ns"] == st.st_mtime_ns)):
             return rec
@@ -108,7 +124,11 @@ class Store:
 
     def quarantine(self, key: str, why: str) -> Path | None:
         """Move a damaged artifact aside (kept for inspection) and forget its record."""
-        self.corrupt.mkdir(parents=True, exist_ok=True)
+        try:
+            self.corrupt.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise PipelineError(f"artifact {key} is damaged ({why}) and cannot be moved aside: "
+                                f"{self.corrupt}: {exc.strerror}") from None
         src = self.path(key)
         dest = self.corrupt / f"{key}-{int(time.time())}-{uuid.uuid4().hex[:6]}.h5"
         try:
@@ -120,13 +140,28 @@ class Store:
             self._index_path(key).unlink()
         return dest
 
+    def check_damage(self, key: str, name: str) -> None:
+        """After reading artifact `key` (of node instance `name`) failed although its record
+        matched: re-digest it and, if its content is damaged, move it aside and raise a
+        one-line error naming it. Returns when the content is intact."""
+        from pipeline.artifact import verify_file
+        path = self.path(key)
+        if not path.exists():
+            raise PipelineError(f"{name}: artifact {key} vanished from the store; `pipeline run` recomputes it")
+        ok, message = verify_file(path)
+        if ok:
+            return
+        dest = self.quarantine(key, message)
+        raise PipelineError(f"{name}: artifact {key} is corrupt ({message}); moved to "
+                            f"{os.path.relpath(dest, self.root) if dest else 'nowhere'}, "
+                            "`pipeline run` recomputes it")
+
     def records(self) -> list[dict]:
         out = []
         for p in sorted(self.index.glob("*.json")) if self.index.is_dir() else []:
-            try:
-                out.append(json.loads(p.read_text()))
-            except (OSError, ValueError):
-                continue
+            rec = _read_json(p)
+            if _valid_record(rec) and rec["key"] == p.stem:
+                out.append(rec)
         return sorted(out, key=lambda r: (r.get("created", ""), r["key"]))
 
     def find(self, text: str) -> dict:
@@ -145,10 +180,7 @@ class Store:
     # -- refs and runs ---------------------------------------------------------------
 
     def read_ref(self, instance: str) -> dict | None:
-        try:
-            return json.loads((self.refs / f"{safe_name(instance)}.json").read_text())
-        except (OSError, ValueError):
-            return None
+        return _read_json(self.refs / f"{safe_name(instance)}.json")
 
     def write_ref(self, instance: str, ref: dict, *, changed: bool = False) -> None:
         """Only rewritten when it changes (dvc watches these files); `changed` skips the
@@ -225,17 +257,28 @@ class Store:
         Inputs of kept artifacts are kept too. Returns the removed keys.
         """
         keep = set(keep)
+        if keep_runs < 0:
+            raise PipelineError(f"gc: keep_runs must be >= 0, got {keep_runs}")
+
+        def damaged(p: Path) -> PipelineError:  # what it protected is unknown: delete nothing
+            return PipelineError(f"gc: {p} is damaged, so what it keeps is unknown; fix or remove it, "
+                                 "then run gc again (nothing was removed)")
         for p in self.refs.glob("*.json") if self.refs.is_dir() else []:
-            with contextlib.suppress(OSError, ValueError, KeyError):
-                keep.add(json.loads(p.read_text())["key"])
+            key = (_read_json(p) or {}).get("key")
+            if not isinstance(key, str):
+                raise damaged(p)
+            keep.add(key)
         runs = sorted(self.runs.glob("*.json")) if self.runs.is_dir() else []
         for p in runs[-keep_runs:] if keep_runs > 0 else []:
-            with contextlib.suppress(OSError, ValueError, KeyError):
-                keep.update(json.loads(p.read_text())["keys"])
+            keys = (_read_json(p) or {}).get("keys")
+            if not isinstance(keys, list) or not all(isinstance(k, str) for k in keys):
+                raise damaged(p)
+            keep.update(keys)
         records = {r["key"]: r for r in self.records()}
         stack = list(keep)
-        while stack:  # keep inputs of kept artifacts
-            rec = records.get(stack.pop())
+        while stack:  # keep inputs of kept artifacts (a damaged index record is rebuilt)
+            key = stack.pop()
+            rec = records.get(key) or self.record(key)
             for v in (rec or {}).get("inputs", {}).values():
                 for k in (v.values() if isinstance(v, dict) else [v]):
                     if k not in keep:

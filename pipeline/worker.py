@@ -159,6 +159,19 @@ def _consume(result: Any, writer) -> None:
         _write_final(writer, result)
 
 
+def _damaged_input(store, task: dict) -> str | None:
+    """After a node failed: the one-line error for the first of its inputs whose content is
+    damaged (moved aside so that the next run recomputes it), or None if all are intact."""
+    for arg, ref in task["inputs"].items():
+        for label, key in (ref.items() if isinstance(ref, dict) else [(None, ref)]):
+            name = f"input '{arg}{f'[{label}]' if label is not None else ''}' of {task['instance']}"
+            try:
+                store.check_damage(key, name)
+            except PipelineError as exc:
+                return str(exc)
+    return None
+
+
 def execute(task: dict) -> dict:
     """Compute one artifact (unless another process already did). Never raises for node errors."""
     for root in task.get("roots", []):
@@ -213,6 +226,13 @@ def execute(task: dict) -> dict:
                 raise
             # errors meant for the user (bad input, a missing device): one line, no traceback
             user = isinstance(exc, PipelineError) or getattr(exc, "user_error", False) is True
+            if not user:  # a damaged input (intact size and mtime) is the store's, not the node's
+                for a in opened:
+                    a.close()
+                opened = []
+                damaged = _damaged_input(store, task)
+                if damaged:
+                    return {"error": damaged, "user_error": True, "traceback": ""}
             return {"error": f"{type(exc).__name__}: {exc}" if not user else str(exc),
                     "user_error": user, "traceback": "" if user else traceback.format_exc()}
         finally:

@@ -28,6 +28,12 @@ def default_threads() -> int:
     return max(1, int(env)) if env else 1
 
 
+class ParamValueError(ValueError):
+    """A param of the right type whose value the node cannot use (an unknown indenter, an
+    empty list of depths): the engine reports it in one line (exit 2), like bad input."""
+    user_error = True
+
+
 class DeviceChoiceError(ValueError):
     """$GENFORCE_DEVICE names no device this machine has: the engine reports it in one line
     (exit 2), like bad input, rather than as a node's crash."""

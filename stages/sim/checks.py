@@ -14,6 +14,7 @@ from stages.figures import figure_png
 from stages.sim.contact import solve_contact_batch
 from stages.sim.indenters import grid_coords
 from stages.sim.sensors import material_of, pad_grid
+from stages.sim.trajectory import check_depths
 
 
 def hertz_force(depth, *, radius, E, nu):
@@ -43,7 +44,7 @@ def contact_check(*, spec: Mapping, materials: Mapping, radius_mm: float, depths
     shape, spacing = pad_grid(spec)
     x, y = grid_coords(shape, spacing)
     height = (x[None, :] ** 2 + y[:, None] ** 2) / (2.0 * radius_mm)
-    depth = np.asarray(depths_mm, float)
+    depth = check_depths(depths_mm, "contact_check.depths_mm")
     res = solve_contact_batch(np.broadcast_to(height, (depth.size,) + shape), depth,
                               spacing=spacing, E=material["E"], nu=material["nu"])
     solver = -res.force[:, 2]

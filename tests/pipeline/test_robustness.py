@@ -293,3 +293,144 @@ def test_fuzz_targets_clean_errors(toy, monkeypatch, capsys, target):
     assert rc in (0, 2)
     if rc == 2:
         assert err.startswith("pipeline: error: ") and err.count("\n") == 1
+
+
+# -- a damaged or missing store: one line naming the culprit, nothing removed -------------
+
+@pytest.mark.parametrize("verb", ["ls", "verify", "metrics", "gc", "report", "show base"])
+def test_missing_store_is_named_not_read_as_empty(toy, verb):
+    p = cli(toy, *verb.split(), "--store", "no/such/store", check=False)
+    assert p.returncode == 2 and p.stderr.count("\n") == 1, p.stderr
+    assert "no store at no/such/store: nothing is built there yet (`pipeline run` builds it)" in p.stderr
+    assert not (toy / "no").exists()
+
+
+def test_store_that_is_a_file_is_named(toy):
+    (toy / "store.txt").write_text("not a store\n")
+    for verb in ("run", "status", "ls"):
+        p = cli(toy, verb, "--store", "store.txt", check=False)
+        assert p.returncode == 2 and p.stderr.strip() == "pipeline: error: store store.txt is not a directory"
+
+
+def test_os_error_in_the_store_is_one_line(toy, monkeypatch, capsys):
+    """A read-only or full store fails the run with the file and the reason, no traceback."""
+    import errno
+    from pipeline.store import Store
+
+    def refuse(self, key):
+        raise OSError(errno.EROFS, "Read-only file system", str(self.locks / f"{key}.lock"))
+    monkeypatch.chdir(toy)
+    monkeypatch.setattr(Store, "lock", refuse)
+    assert main(["run", "base"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert err.startswith("pipeline: error: cannot use ") and err.rstrip().endswith(".lock: Read-only file system")
+    assert str(toy / "artifacts" / "locks") in err
+
+
+def _flip_superblock_keep_mtime(path: Path) -> None:
+    st = path.stat()
+    with open(path, "r+b") as fh:   # bytes 16-17: the superblock's version and size fields
+        fh.seek(16)
+        b = fh.read(2)
+        fh.seek(16)
+        fh.write(bytes([b[0] ^ 0xFF, b[1] ^ 0xFF]))
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
+
+
+def test_damaged_input_with_its_record_intact_is_moved_aside_not_blamed_on_the_node(toy):
+    """Size and mtime still match the index record, so only reading it finds the damage: the
+    node that reads it fails with one line naming the input, the file goes to corrupt/, and
+    the next run recomputes it (same content, so everything downstream is a cutoff)."""
+    first = run_json(toy)
+    key = {n["name"]: n["key"] for n in first["nodes"]}["base"]
+    path = toy / "artifacts" / "objects" / f"{key}.h5"
+    _flip_superblock_keep_mtime(path)
+    p = cli(toy, "run", "--force", "scaled", check=False)
+    assert p.returncode == 2 and p.stderr.count("\n") == 1 and "Traceback" not in p.stderr
+    assert f"node scaled: input 'base' of scaled: artifact {key} is corrupt (unreadable" in p.stderr
+    assert "moved to corrupt/" in p.stderr and not path.exists()
+    assert len(list((toy / "artifacts" / "corrupt").glob(f"{key}-*.h5"))) == 1
+    out = run_json(toy)
+    assert statuses(out)["base"] == "ran" and statuses(out)["scaled"] == "cutoff"
+    assert cli(toy, "verify").returncode == 0
+
+
+def test_show_of_a_damaged_artifact_with_its_record_intact(toy):
+    first = run_json(toy)
+    key = {n["name"]: n["key"] for n in first["nodes"]}["base"]
+    _flip_superblock_keep_mtime(toy / "artifacts" / "objects" / f"{key}.h5")
+    p = cli(toy, "show", "base", check=False)
+    assert p.returncode == 2 and p.stderr.count("\n") == 1 and "Traceback" not in p.stderr
+    assert f"base: artifact {key} is corrupt (unreadable" in p.stderr
+    assert statuses(run_json(toy))["base"] == "ran"
+
+
+@pytest.mark.parametrize("damage", ['{"key": 5}', "[1, 2]", '{"digest": "x"}', "null"])
+def test_index_records_of_the_wrong_shape_are_rebuilt(toy, damage):
+    first = run_json(toy)
+    for p in (toy / "artifacts" / "index").glob("*.json"):
+        p.write_text(damage)
+    assert set(statuses(run_json(toy)).values()) == {"cached"}
+    assert len(json.loads(cli(toy, "ls", "--json").stdout)) == len(first["nodes"])
+    assert cli(toy, "verify").returncode == 0
+
+
+def test_refs_of_the_wrong_shape_read_as_missing(toy):
+    run_json(toy)
+    for p in (toy / "artifacts" / "refs").glob("*.json"):
+        p.write_text("[1, 2]")
+    out = json.loads(cli(toy, "status", "--json").stdout)
+    assert {n["status"] for n in out["nodes"]} == {"cached"}   # the index, not the refs, decides
+    assert set(statuses(run_json(toy)).values()) == {"cached"}
+
+
+@pytest.mark.parametrize("folder,text", [("runs", '{"keys": 5}'), ("runs", "[1]"), ("refs", '["k"]')])
+def test_gc_refuses_when_what_a_file_keeps_is_unknown(toy, folder, text):
+    run_json(toy)
+    run_json(toy, "-p", "seed=4")
+    before = sorted(p.name for p in (toy / "artifacts" / "objects").iterdir())
+    victim = sorted((toy / "artifacts" / folder).glob("*.json"))[-1]
+    victim.write_text(text)
+    p = cli(toy, "gc", "-p", "seed=4", check=False)
+    assert p.returncode == 2 and p.stderr.count("\n") == 1
+    assert f"gc: {victim} is damaged" in p.stderr and "nothing was removed" in p.stderr
+    assert sorted(p.name for p in (toy / "artifacts" / "objects").iterdir()) == before
+
+
+@pytest.mark.parametrize("args,message", [
+    (["gc", "--keep-runs", "-1"], "argument --keep-runs: expected a whole number >= 0, got -1"),
+    (["run", "-p", "scale=.nan"], "param 'scale' (-p scale=.nan) must be a finite number, got nan"),
+    (["run", "-p", "scale=-.inf"], "param 'scale' (-p scale=-.inf) must be a finite number, got -inf"),
+    (["run", "-p", "letters=[a, z]"],
+     "node 'shifted' has no param 'offset.z' for letter=z: is that value in letters a typo?"),
+])
+def test_more_bad_input_one_line_exit_2(toy, args, message):
+    p = cli(toy, *args, check=False)
+    assert p.returncode == 2 and p.stderr.count("\n") == 1 and "Traceback" not in p.stderr
+    assert message in p.stderr, p.stderr
+
+
+def test_recursive_yaml_anchor_and_non_utf8_baseline(toy, tmp_path):
+    (toy / "params" / "small.yaml").write_text("offset: &a {a: *a}\n")
+    p = cli(toy, "status", "--profile", "small", check=False)
+    assert p.returncode == 2 and p.stderr.count("\n") == 1
+    assert "small.yaml: a YAML alias contains itself (recursive anchor)" in p.stderr
+    run_json(toy)
+    bad = tmp_path / "b.yaml"
+    bad.write_bytes(b"metrics: {toy/total: 1}\n# \xff\xfe\n")
+    p = cli(toy, "metrics", "--baseline", str(bad), check=False)
+    assert p.returncode == 2 and p.stderr.strip() == f"pipeline: error: baseline {bad} is not UTF-8 text (byte 26)"
+
+
+def test_corrupt_folder_that_is_a_file_is_named(toy):
+    first = run_json(toy)
+    key = {n["name"]: n["key"] for n in first["nodes"]}["base"]
+    path = toy / "artifacts" / "objects" / f"{key}.h5"
+    with open(path, "r+b") as fh:
+        fh.truncate(path.stat().st_size - 100)
+    (toy / "artifacts" / "corrupt").write_text("in the way\n")
+    p = cli(toy, "status", check=False)
+    assert p.returncode == 2 and p.stderr.count("\n") == 1
+    assert f"artifact {key} is damaged (" in p.stderr and "cannot be moved aside" in p.stderr
+    assert path.exists()

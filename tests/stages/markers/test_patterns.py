@@ -165,3 +165,11 @@ def test_golden_array2_digest_and_png():
     golden = cv2.imread(str(GOLDEN), cv2.IMREAD_GRAYSCALE)
     assert golden is not None, f"missing {GOLDEN}; {REGEN}"
     assert np.array_equal(img, golden), REGEN
+
+
+@pytest.mark.parametrize("size", [[96], [96, 20], [96.0, 96]])
+def test_reference_set_rejects_an_unusable_image_size(size):
+    from stages.common import ParamValueError
+    from stages.markers.patterns import reference_set
+    with pytest.raises(ParamValueError, match=r"patterns.image_size must be \[height, width\] in pixels, each >= 32"):
+        reference_set(["Array1"], size=size)

@@ -176,3 +176,20 @@ def test_calibration_trajectory_shear_leg():
     np.testing.assert_array_equal(tr["loading"], tr["phase"] != 3)
     with pytest.raises(ValueError, match="shear_mm"):
         calibration_trajectory(shear_mm=-1.0)
+
+
+@pytest.mark.parametrize("make,kwargs,message", [
+    (sim_grid_trajectory, {"indenters": ["sphere", "spere"]}, "unknown indenter 'spere' (known: cone, "),
+    (sim_grid_trajectory, {"indenters": []}, "the trajectory names no indenters"),
+    (sim_grid_trajectory, {"depths_mm": []}, "depths_mm must be a non-empty list of depths > 0 mm, got []"),
+    (sim_grid_trajectory, {"depths_mm": [0.3, -0.1]}, "depths_mm must be a non-empty list of depths > 0 mm"),
+    (collection_trajectory, {"indenters": ["nosuch"]}, "unknown indenter 'nosuch'"),
+    (collection_trajectory, {"rate_hz": 0}, "rate_hz, speed_mm_s, n_paired must be positive"),
+])
+def test_unusable_values_are_the_users_one_line_errors(make, kwargs, message):
+    """A param of the right type that names nothing usable is bad input (the engine prints it
+    in one line, exit 2), not a crash of the node."""
+    from stages.common import ParamValueError
+    with pytest.raises(ParamValueError) as err:
+        make(**kwargs)
+    assert message in str(err.value) and err.value.user_error is True
