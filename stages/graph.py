@@ -137,9 +137,10 @@ GRAPH.node("features", "stages.m2m.nodes:image_features",
 _SIMS = "@m2m.pretrain.skins"
 GRAPH.node("sim_m2m", "stages.m2m.nodes:image_study",
            inputs={"features": f"features[skin={_SIMS}]", "translated": "translate_sim[*]",
-                   "warped": f"flow_warp[source={_SIMS},target={_SIMS}]"},
+                   "warped": f"flow_warp[source={_SIMS},target={_SIMS}]", "markers": f"markers[skin={_SIMS}]"},
            params={"study": "sim_m2m.study", "pairs": "sim_m2m.pairs", "kid_subset": "m2m.kid_subset"},
-           description="study sim-m2m (paper Fig. 3): FID/KID before / m2m / flow_warp, heatmaps, t-SNE")
+           description="study sim-m2m (paper Fig. 3): FID/KID before / m2m / flow_warp, heatmaps, t-SNE, "
+                       "and how well each keeps the deformation (marker motion error)")
 
 # -- force: regressors, transfer with material compensation, the studies ----------------------
 _FIT = {"config": "force.config", "steps": "force.steps", "batch_size": "force.batch_size",

@@ -88,17 +88,59 @@ class MarkerFlow:
         self.ref_points = centroids(self.reference)
         self.pitch = pitch(self.ref_points)
 
-    def sparse(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Matched markers: (deformed positions (M,2), displacements (M,2)) in px."""
+    def _matched(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         pts = centroids(image)
         i, j = match(pts, self.ref_points, 0.5 * self.pitch)
-        return pts[i], pts[i] - self.ref_points[j]
+        return pts[i], j
+
+    def sparse(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Matched markers: (deformed positions (M,2), displacements (M,2)) in px."""
+        pts, j = self._matched(image)
+        return pts, pts - self.ref_points[j]
+
+    def displacements(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Matched markers: (their indices into ref_points (M,), displacements (M,2)) in px."""
+        pts, j = self._matched(image)
+        return j, pts - self.ref_points[j]
 
     def field(self, image: np.ndarray, sigma: float | None = None) -> np.ndarray:
         """Dense Eulerian displacement field (H,W,2) px: v(p) = how far the material now at
         p has moved from its reference position."""
         pts, vec = self.sparse(image)
         return splat(pts, vec, image.shape, self.pitch if sigma is None else sigma)[0]
+
+
+def motion_error(images, truth, reference, moving_px: float = 1.0) -> tuple[float, float, int]:
+    """How well `images` keep a deformation that `truth` shows (both (N,H,W) marker images in
+    the style of `reference`, paired row by row: the same contact).
+
+    Over the reference's markers that move more than `moving_px` in the true frames: the mean
+    |displacement in images - displacement in truth| in px (a marker that images lost counts
+    as not moved), their mean true displacement, and how many markers that is.  The reference
+    itself, which keeps none of the deformation, scores error == motion."""
+    images, truth = np.asarray(images, np.uint8), np.asarray(truth, np.uint8)
+    reference = np.asarray(reference, np.uint8)
+    if images.shape != truth.shape or truth.shape[1:] != reference.shape:
+        raise ValueError(f"motion_error: images {images.shape} and truth {truth.shape} must be (N,H,W) "
+                         f"frames of the reference's size {reference.shape}")
+    flow = MarkerFlow(reference)
+    m = len(flow.ref_points)
+    err = motion = 0.0
+    count = 0
+    for im, tr in zip(images, truth):
+        jt, vt = flow.displacements(tr)
+        keep = np.linalg.norm(vt, axis=1) > moving_px
+        jt, vt = jt[keep], vt[keep]
+        jo, vo = flow.displacements(im)
+        got, have = np.zeros((m, 2)), np.zeros(m, bool)
+        got[jo], have[jo] = vo, True
+        size = np.linalg.norm(vt, axis=1)
+        err += float(np.where(have[jt], np.linalg.norm(got[jt] - vt, axis=1), size).sum())
+        motion += float(size.sum())
+        count += len(jt)
+    if not count:
+        return float("nan"), float("nan"), 0
+    return err / count, motion / count, count
 
 
 def warp(image: np.ndarray, field: np.ndarray) -> np.ndarray:

@@ -395,10 +395,16 @@ def pair_label(source: str, target: str) -> str:
 
 
 def image_study(*, study: str, pairs: list, features: Mapping, translated: Mapping,
-                warped: Mapping | None = None, kid_subset: int = 100) -> dict:
+                warped: Mapping | None = None, kid_subset: int = 100, markers: Mapping | None = None) -> dict:
     """FID/KID of every (source, target) pair: `before` (source's own evaluation images vs
     the target's), `m2m` (translated vs target) and `flow_warp` (warped vs target), their
-    means, (S,S) matrices fid/<method>, kid/<method> (NaN off the pairs), heatmaps and t-SNE."""
+    means, (S,S) matrices fid/<method>, kid/<method> (NaN off the pairs), heatmaps and t-SNE.
+
+    With `markers` (the skins' marker artifacts, for skins whose paired frames show one and
+    the same deformation, as the simulation patterns' do): whether each method keeps the
+    deformation, `motion_err_px` per pair and method (stages.m2m.flow.motion_error on the
+    evaluation frames against the target's own; `before` is the target's reference, which
+    keeps none of it, so it scores the markers' mean motion), matrices motion_err/<method>."""
     from stages.imagemetrics import fid, heatmaps_figure, kid
     t0 = time.perf_counter()
     pairs = [(str(s), str(t)) for s, t in pairs]
@@ -435,6 +441,10 @@ def image_study(*, study: str, pairs: list, features: Mapping, translated: Mappi
         metrics[f"{study}/mean/{m}/kid"] = float(np.nanmean(kids[m]))
     figures = {"fid": figure_png(heatmaps_figure(fids, names, "FID", log=True)),
                "kid": figure_png(heatmaps_figure(kids, names, "KID"))}
+    motion = {}
+    if markers:
+        motion = _motion_errors(study, pairs, names, index, features, markers, sources, methods, metrics)
+        figures["motion"] = figure_png(heatmaps_figure(motion, names, "marker motion error (px)"))
     if gen_feats:
         figures["tsne"] = figure_png(_tsne_figure(names, feats, gen_feats))
     drop = {m: metrics[f"{study}/mean/before/fid"] / max(metrics[f"{study}/mean/{m}/fid"], 1e-12)
@@ -442,12 +452,48 @@ def image_study(*, study: str, pairs: list, features: Mapping, translated: Mappi
     return {
         "skins": names,
         "fid": fids, "kid": kids,
+        **({"motion_err": motion} if motion else {}),
         "figures": figures,
         "metrics": metrics,
         "attrs": {"study": study, "pairs": len(pairs), "methods": methods, "kid_subset": int(kid_subset),
                   "fid_drop": {m: round(v, 2) for m, v in drop.items()}},
         "timing": {"seconds": round(time.perf_counter() - t0, 2)},
     }
+
+
+def _motion_errors(study, pairs, names, index, features, markers, sources, methods, metrics) -> dict:
+    """image_study's motion_err_px of every pair whose target is in `markers` (see there)."""
+    from stages.m2m.flow import motion_error
+
+    def frames_of(art, wanted):  # art's images of the frames `wanted`, in that order
+        pos = {int(f): r for r, f in enumerate(np.asarray(art["frame"]))}
+        missing = [int(f) for f in wanted if int(f) not in pos]
+        if missing:
+            raise KeyError(f"evaluation frames {missing[:5]} missing from an artifact")
+        rows = np.asarray([pos[int(f)] for f in wanted])
+        order = np.argsort(rows)
+        out = np.empty((len(rows), *np.shape(art["images"])[1:]), np.uint8)
+        out[order] = read_rows(art["images"], rows[order])
+        return out
+
+    out = {m: np.full((len(names),) * 2, np.nan) for m in methods}
+    for s, t in pairs:
+        if t not in markers:
+            continue
+        frames = np.asarray(features[t]["eval_frames"])
+        truth = frames_of(markers[t], frames)
+        reference = np.asarray(markers[t]["reference"], np.uint8)
+        for m in methods:
+            if m == "before":
+                images = np.broadcast_to(reference, truth.shape)
+            else:
+                images = frames_of(sources[m][pair_label(s, t)], frames)
+            err, _, _ = motion_error(images, truth, reference)
+            out[m][index[s], index[t]] = err
+            metrics[f"{study}/{s}_{t}/{m}/motion_err_px"] = err
+    for m in methods:
+        metrics[f"{study}/mean/{m}/motion_err_px"] = float(np.nanmean(out[m]))
+    return out
 
 
 def _tsne_figure(names, feats: Mapping, gen_feats: Mapping):

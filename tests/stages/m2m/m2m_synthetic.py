@@ -51,3 +51,23 @@ def true_motion_px(name, frame_index, n_frames=48, size=SIZE, seed=0):
     f = fields(n_frames, seed)[frame_index]
     px_per_mm = size / PAD[0]
     return (ms.centers + PAD[0] / 2) * px_per_mm - 0.5, displacement(ms.centers, *f) * px_per_mm
+
+
+def motion_error(out, reference, name, i, moving=1.0):
+    """For the target markers that truly move more than `moving` px in frame i: mean
+    |measured - true| displacement (px) of those markers in `out`, and their mean motion."""
+    from stages.m2m.flow import MarkerFlow
+    ref_px, true = true_motion_px(name, i)
+    pts, vec = MarkerFlow(reference).sparse(out)
+    # the reference marker each matched marker came from
+    j = np.linalg.norm((pts - vec)[:, None] - ref_px[None], axis=-1).argmin(1)
+    sel = np.linalg.norm(true[j], axis=1) > moving
+    return np.linalg.norm(vec - true[j], axis=1)[sel].sum(), np.linalg.norm(true[j], axis=1)[sel].sum(), sel.sum()
+
+
+def mean_motion_error(images, reference, name, frames=None):
+    """Over frames (indices into the artifact, default 0..len(images)-1): mean error and mean
+    true motion (px) of the target markers that move, as measured in `images`."""
+    frames = range(len(images)) if frames is None else frames
+    err, motion, n = np.sum([motion_error(im, reference, name, i) for im, i in zip(images, frames)], 0)
+    return err / n, motion / n

@@ -1,9 +1,9 @@
 """The flow-warp baseline: identity, and that it carries the source's marker motion over."""
 import numpy as np
 import pytest
-from m2m_synthetic import SIZE, marker_artifact, true_motion_px
+from m2m_synthetic import SIZE, marker_artifact, mean_motion_error
 
-from stages.m2m.flow import MarkerFlow, centroids, flow_warp, match, pitch, splat, warp
+from stages.m2m.flow import MarkerFlow, centroids, flow_warp, match, motion_error, pitch, splat, warp
 
 
 def test_identity_returns_the_target_reference(skins):
@@ -12,22 +12,6 @@ def test_identity_returns_the_target_reference(skins):
     assert out.shape == (2, SIZE, SIZE) and out.dtype == np.uint8
     np.testing.assert_array_equal(out[0], b["reference"])
     np.testing.assert_array_equal(out[1], b["reference"])
-
-
-def motion_error(out, reference, name, i, moving=1.0):
-    """For the target markers that truly move more than `moving` px in frame i: mean
-    |measured - true| displacement (px) of those markers in `out`, and their mean motion."""
-    ref_px, true = true_motion_px(name, i)
-    pts, vec = MarkerFlow(reference).sparse(out)
-    # the reference marker each matched marker came from
-    j = np.linalg.norm((pts - vec)[:, None] - ref_px[None], axis=-1).argmin(1)
-    sel = np.linalg.norm(true[j], axis=1) > moving
-    return np.linalg.norm(vec - true[j], axis=1)[sel].sum(), np.linalg.norm(true[j], axis=1)[sel].sum(), sel.sum()
-
-
-def mean_motion_error(images, reference, name):
-    err, motion, n = np.sum([motion_error(im, reference, name, i) for i, im in enumerate(images)], 0)
-    return err / n, motion / n
 
 
 def test_warped_markers_follow_the_source_motion(skins):
@@ -42,6 +26,24 @@ def test_warped_markers_follow_the_source_motion(skins):
     assert motion > 1.5                       # moving markers travel 1.8 px on average
     assert err < 0.35 * motion                # 0.54 px
     assert err < floor + 0.1                  # the true images measure 0.56 px
+
+
+def test_motion_error_of_the_truth_the_reference_and_flow_warp(skins):
+    """motion_error measures against the target's own frames: they score 0, the undeformed
+    reference scores the markers' mean motion (which agrees with the synthetic field's), and
+    flow-warp, which carries the motion over, scores the error measured against that field."""
+    a, b = skins["Array3"], skins["Diamond3"]
+    truth, ref = b["images"], b["reference"]
+    err, motion, n = motion_error(truth, truth, ref)
+    assert err == 0.0 and n > 100
+    _, true_motion = mean_motion_error(truth, ref, "Diamond3")
+    assert motion == pytest.approx(true_motion, abs=0.15)          # 1.8 px on the moving markers
+    still, motion_again, _ = motion_error(np.broadcast_to(ref, truth.shape), truth, ref)
+    assert still == pytest.approx(motion) and motion_again == motion
+    warped, _, _ = motion_error(flow_warp(a["images"], a["reference"], ref), truth, ref)
+    assert 0.1 < warped < 0.5 * motion
+    with pytest.raises(ValueError, match=r"motion_error: images \(48, 10, 64\) and truth \(48, 64, 64\)"):
+        motion_error(truth[:, :10], truth, ref)
 
 
 def test_centroids_pitch_and_match():
