@@ -28,10 +28,30 @@ def default_threads() -> int:
     return max(1, int(env)) if env else 1
 
 
-class ParamValueError(ValueError):
-    """A param of the right type whose value the node cannot use (an unknown indenter, an
-    empty list of depths): the engine reports it in one line (exit 2), like bad input."""
+class InputError(ValueError):
+    """Bad input a node finds: a param of the right type whose value it cannot use (an unknown
+    indenter, an empty list of depths), or a file it reads that is missing or malformed.  The
+    engine reports it in one line (exit 2) naming the culprit, not as the node's crash."""
     user_error = True
+
+
+def marker_images(x, what: str, ndims=(2, 3)):
+    """x as uint8 marker images (0/255) of one of `ndims` dimensions ((H,W) or (N,H,W)), or a
+    ValueError naming `what` and what was expected: float images (0..1 or 0..255 alike) and
+    values outside 0..255 are refused, not cast to garbage; bool images become 0/255."""
+    import numpy as np
+    a = np.asarray(x)
+    if a.ndim not in ndims:
+        shapes = " or ".join({2: "(H,W)", 3: "(N,H,W)", 4: "(B,T,H,W)"}[n] for n in ndims)
+        raise ValueError(f"{what}: expected {shapes} marker images, got shape {a.shape}")
+    if a.dtype == bool:
+        return a.astype(np.uint8) * 255
+    if a.dtype != np.uint8:
+        if not np.issubdtype(a.dtype, np.integer):
+            raise ValueError(f"{what}: expected uint8 marker images (0/255), got {a.dtype}")
+        if a.size and (a.min() < 0 or a.max() > 255):
+            raise ValueError(f"{what}: values {a.min()}..{a.max()} outside the marker images' 0..255")
+    return a.astype(np.uint8, copy=False)
 
 
 class DeviceChoiceError(ValueError):

@@ -27,6 +27,7 @@ from typing import Mapping
 import numpy as np
 
 from stages.capture import DeviceError
+from stages.common import InputError
 
 RTDE_PORT = 30004
 DEVICES = {"robot": "devices:Robot", "netft": "ft:NetFT", "serial_ft": "ft:SerialFT",
@@ -36,7 +37,7 @@ DEVICES = {"robot": "devices:Robot", "netft": "ft:NetFT", "serial_ft": "ft:Seria
 def client_class(name: str) -> type:
     """The client class of a device name (robot, netft, serial_ft, camera, xela, slcan)."""
     if name not in DEVICES:
-        raise ValueError(f"unknown device {name!r} (known: {', '.join(DEVICES)})")
+        raise InputError(f"unknown device {name!r} (known: {', '.join(DEVICES)})")
     module, cls = DEVICES[name].split(":")
     return getattr(importlib.import_module(f"stages.capture.{module}"), cls)
 
@@ -60,7 +61,7 @@ class Device:
     def __init__(self, params: Mapping | None = None):
         unknown = set(params or {}) - set(self.defaults) - {"faults", "emulator"}
         if unknown:
-            raise ValueError(f"{self.kind}: unknown parameter(s) {', '.join(sorted(unknown))} "
+            raise InputError(f"{self.kind}: unknown parameter(s) {', '.join(sorted(unknown))} "
                              f"(known: {', '.join(sorted(self.defaults))})")
         self.p = {**self.defaults, **{k: v for k, v in (params or {}).items() if k in self.defaults}}
         self.samples = 0

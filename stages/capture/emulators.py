@@ -36,6 +36,7 @@ from stages.capture.devices import DEVICES, Camera, Robot
 from stages.capture.ft import NETFT_HEADER, NETFT_RECORD, NETFT_REQUEST, NetFT, SerialFT
 from stages.capture.tactile import TAXELS, Slcan, Xela
 from stages.capture.twin import ContactTwin, World, marker_layout
+from stages.common import InputError
 
 FAULTS = {"robot": ("protective_stop_at",), "netft": ("disconnect_after", "drop_every"),
           "serial_ft": ("disconnect_after", "drop_every"), "slcan": ("disconnect_after", "drop_every"),
@@ -406,7 +407,7 @@ def split_params(device: str, params: Mapping) -> tuple[dict, dict, dict]:
     for what, given, known in (("emulator setting", settings, SETTINGS[device]), ("fault", faults, FAULTS[device])):
         unknown = set(given) - set(known)
         if unknown:
-            raise ValueError(f"{device}: unknown {what}(s) {', '.join(sorted(unknown))} "
+            raise InputError(f"{device}: unknown {what}(s) {', '.join(sorted(unknown))} "
                              f"(known: {', '.join(known) or 'none'})")
     return params, settings, {k: int(v) for k, v in faults.items()}
 
@@ -423,7 +424,7 @@ class Emulators:
         self.devices = list(devices)
         unknown = [d for d in self.devices if d not in DEVICES]
         if unknown:
-            raise ValueError(f"unknown device(s) {', '.join(unknown)} (known: {', '.join(DEVICES)})")
+            raise InputError(f"unknown device(s) {', '.join(unknown)} (known: {', '.join(DEVICES)})")
         self.parts = {d: split_params(d, params.get(d, {})) for d in self.devices}
         robot = {**Robot.defaults, **self.parts.get("robot", ({}, {}, {}))[0]}
         cam = {**Camera.defaults, **self.parts.get("camera", ({}, {}, {}))[0]}

@@ -29,6 +29,7 @@ import numpy as np
 
 from stages.capture import DeviceError
 from stages.capture.devices import Device, Sample
+from stages.common import InputError
 
 NETFT_PORT = 49152
 NETFT_REQUEST = struct.Struct(">HHI")
@@ -103,7 +104,7 @@ class NetFT(_Records, _LossCheck, Device):
     def __init__(self, params=None):
         super().__init__(params)
         if self.p["mode"] not in ("poll", "stream"):
-            raise ValueError(f"netft: mode must be poll or stream, got {self.p['mode']!r}")
+            raise InputError(f"netft: mode must be poll or stream, got {self.p['mode']!r}")
         self.sock, self.received, self.lost, self.bad, self._last_rdt = None, 0, 0, 0, None
         self._init_records()
 
@@ -220,7 +221,7 @@ class SerialFT(_Records, _LossCheck, Device):
     def __init__(self, params=None):
         super().__init__(params)
         if self.p["mode"] not in ("poll", "stream"):
-            raise ValueError(f"serial_ft: mode must be poll or stream, got {self.p['mode']!r}")
+            raise InputError(f"serial_ft: mode must be poll or stream, got {self.p['mode']!r}")
         self.port, self.received, self.lost, self.bad, self._last_seq = None, 0, 0, 0, None
         self._init_records()
 

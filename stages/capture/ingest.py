@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from stages.common import InputError
 from stages.sim.indenters import ALL_INDENTERS
 
 SOURCE_SIZE = (480, 640)
@@ -54,31 +55,34 @@ def _contacts(sensor_dir: Path) -> tuple[list[str], list[tuple[str, Path]]]:
     """Indenter names (in id order) and the (indenter, contact folder) list."""
     found = sorted(p.name for p in sensor_dir.iterdir() if p.is_dir())
     if not found:
-        raise ValueError(f"ingest: {sensor_dir} holds no indenter folders")
+        raise InputError(f"ingest: {sensor_dir} holds no indenter folders")
     names = list(ALL_INDENTERS) + sorted(n for n in found if n not in ALL_INDENTERS)
     out = []
     for name in sorted(found, key=names.index):
         for c in sorted((p for p in (sensor_dir / name).iterdir() if p.is_dir()), key=lambda p: _natural(p.name)):
             out.append((name, c))
     if not out:
-        raise ValueError(f"ingest: no contact folders under {sensor_dir}/<indenter>/")
+        raise InputError(f"ingest: no contact folders under {sensor_dir}/<indenter>/")
     return names, out
 
 
 def _csv(path: Path, required, optional=()) -> dict[str, np.ndarray]:
     if not path.is_file():
-        raise ValueError(f"ingest: missing file {path}")
+        raise InputError(f"ingest: missing file {path}")
     with open(path, newline="") as f:
         reader = csv.reader(f)
         header = [h.strip() for h in next(reader, [])]
         rows = [r for r in reader if r]
     missing = [c for c in required if c not in header]
     if missing:
-        raise ValueError(f"ingest: {path} lacks column(s) {', '.join(missing)} (header {','.join(header)})")
+        raise InputError(f"ingest: {path} lacks column(s) {', '.join(missing)} (header {','.join(header)})")
     try:
         table = np.array([[float(v) for v in r] for r in rows], float).reshape(len(rows), len(header))
     except ValueError:
-        raise ValueError(f"ingest: {path} has a malformed row (every row needs {len(header)} numbers)") from None
+        raise InputError(f"ingest: {path} has a malformed row (every row needs {len(header)} numbers)") from None
+    if not np.isfinite(table).all():
+        row = int(np.flatnonzero(~np.isfinite(table).all(axis=1))[0])
+        raise InputError(f"ingest: {path} row {row + 2} holds a value that is not a finite number")
     return {c: table[:, header.index(c)] for c in (*required, *optional) if c in header}
 
 
@@ -87,13 +91,20 @@ def _unpack(packed: np.ndarray) -> np.ndarray:
     return np.unpackbits(packed, axis=-1)[..., :SOURCE_SIZE[1]]
 
 
+def _load_npy(path: Path) -> np.ndarray:
+    try:
+        return np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise InputError(f"ingest: {path} is not a readable .npy array ({str(exc).splitlines()[0]})") from None
+
+
 def _markers(path: Path) -> np.ndarray:
     if not path.is_file():
-        raise ValueError(f"ingest: missing file {path}")
-    packed = np.load(path, allow_pickle=False)
+        raise InputError(f"ingest: missing file {path}")
+    packed = _load_npy(path)
     want = (SOURCE_SIZE[0], SOURCE_SIZE[1] // 8)
     if packed.dtype != np.uint8 or packed.ndim != 3 or packed.shape[1:] != want:
-        raise ValueError(f"ingest: {path} holds {packed.dtype} {packed.shape}; expected uint8 "
+        raise InputError(f"ingest: {path} holds {packed.dtype} {packed.shape}; expected uint8 "
                          f"(N, {want[0]}, {want[1]}) bit-packed 480x640 images")
     return packed
 
@@ -145,13 +156,13 @@ def paired_frames(phase: np.ndarray, n_paired: int = 4) -> np.ndarray:
 def _reference(sensor_dir: Path, first_contact: Path, size) -> np.ndarray:
     path = sensor_dir / "reference.npy"
     if path.is_file():
-        ref = np.load(path, allow_pickle=False)
+        ref = _load_npy(path)
         if ref.dtype == np.uint8 and ref.shape == (SOURCE_SIZE[0], SOURCE_SIZE[1] // 8):
             bits = _unpack(ref)
         elif ref.shape == SOURCE_SIZE:
             bits = (np.asarray(ref) > 0).astype(np.uint8)
         else:
-            raise ValueError(f"ingest: {path} holds {ref.dtype} {ref.shape}; expected (480, 80) "
+            raise InputError(f"ingest: {path} holds {ref.dtype} {ref.shape}; expected (480, 80) "
                              "bit-packed uint8 or a (480, 640) image")
     else:
         bits = _unpack(_markers(first_contact / "markers.npy")[:1])[0]
@@ -163,16 +174,18 @@ def ingest(*, root: str, sensor: str, size, max_depth_mm: float | None = None, n
     """Node `ingest`: yields one chunk per contact (images (n,H,W) 0/255 and the contact-sequence
     labels, plus torque (n,3)), returns reference (H,W), indenters (names) and attrs.  See the
     module docstring for the layout and how labels are derived."""
+    if len(size) != 2 or not all(isinstance(v, int) and v >= 8 for v in size):
+        raise InputError(f"ingest.size must be [height, width] in pixels, each >= 8, got {size!r}")
     sensor_dir = Path(root) / sensor
     if not sensor_dir.is_dir():
-        raise ValueError(f"ingest: no folder {sensor_dir} (expected <root>/<sensor>/<indenter>/<contact>/)")
+        raise InputError(f"ingest: no folder {sensor_dir} (expected <root>/<sensor>/<indenter>/<contact>/)")
     names, contacts = _contacts(sensor_dir)
     tables = []
     for _, folder in contacts:                         # read the small files first: check, max depth
         depth = _csv(folder / "depth.csv", ("depth_mm",), ("x_mm", "y_mm"))
         ft = _csv(folder / "ft.csv", FT_COLUMNS)
         if len(ft["Fx"]) != len(depth["depth_mm"]):
-            raise ValueError(f"ingest: {folder / 'ft.csv'} has {len(ft['Fx'])} rows but "
+            raise InputError(f"ingest: {folder / 'ft.csv'} has {len(ft['Fx'])} rows but "
                              f"{folder / 'depth.csv'} has {len(depth['depth_mm'])}")
         tables.append((depth, ft))
     deepest = max(float(np.max(d["depth_mm"], initial=0.0)) for d, _ in tables)
@@ -182,7 +195,7 @@ def ingest(*, root: str, sensor: str, size, max_depth_mm: float | None = None, n
         packed = _markers(folder / "markers.npy")
         n = len(depth["depth_mm"])
         if packed.shape[0] != n:
-            raise ValueError(f"ingest: {folder / 'markers.npy'} has {packed.shape[0]} frames but "
+            raise InputError(f"ingest: {folder / 'markers.npy'} has {packed.shape[0]} frames but "
                              f"{folder / 'depth.csv'} has {n} rows")
         d = depth["depth_mm"]
         xy = np.column_stack([depth.get("x_mm", np.zeros(n)), depth.get("y_mm", np.zeros(n))])

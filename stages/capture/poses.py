@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from stages.common import InputError
+
 
 def _yaw(yaw_deg: float) -> np.ndarray:
     c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
@@ -23,7 +25,7 @@ def _yaw(yaw_deg: float) -> np.ndarray:
 def check_origin(origin) -> np.ndarray:
     o = np.asarray(origin, float)
     if o.shape != (6,) or not np.isfinite(o).all():
-        raise ValueError(f"robot origin must be 6 finite numbers [x, y, z, rx, ry, rz] (m, rad), got {origin!r}")
+        raise InputError(f"robot origin must be 6 finite numbers [x, y, z, rx, ry, rz] (m, rad), got {origin!r}")
     return o
 
 

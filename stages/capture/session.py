@@ -63,6 +63,7 @@ from stages.capture import DeviceError
 from stages.capture.devices import DEVICES, Camera, Robot, client_class
 from stages.capture.poses import check_origin, to_pose, to_sensor
 from stages.capture.staging import Staging
+from stages.common import InputError
 
 SESSION_DEFAULTS = {"name": None, "indenters": None, "contacts_per_indenter": 0, "frame_stride": 1,
                     "depth_scale": 1.0, "max_depth_mm": None, "chunk_frames": 64, "tool_change": "auto"}
@@ -80,12 +81,14 @@ _DTYPES = {"phase": np.int8, "contact_id": np.int32, "indenter_id": np.int16, "p
 def _session(session: Mapping | None, sensor: str) -> dict:
     unknown = set(session or {}) - set(SESSION_DEFAULTS)
     if unknown:
-        raise ValueError(f"capture session: unknown parameter(s) {', '.join(sorted(unknown))} "
+        raise InputError(f"capture session: unknown parameter(s) {', '.join(sorted(unknown))} "
                          f"(known: {', '.join(SESSION_DEFAULTS)})")
     s = {**SESSION_DEFAULTS, **(session or {})}
     s["name"] = str(s["name"] or sensor)
     if not s["name"] or any(c in s["name"] for c in "/\\"):
-        raise ValueError(f"capture session name {s['name']!r} must be a plain file-name part")
+        raise InputError(f"capture session name {s['name']!r} must be a plain file-name part")
+    if s["tool_change"] not in ("auto", "operator"):
+        raise InputError(f"capture session: tool_change must be auto or operator, got {s['tool_change']!r}")
     return s
 
 
@@ -101,13 +104,47 @@ def _check_devices(devices) -> list[str]:
     devices = [str(d) for d in devices]
     unknown = [d for d in devices if d not in DEVICES]
     if unknown:
-        raise ValueError(f"capture: unknown device(s) {', '.join(unknown)} (known: {', '.join(DEVICES)})")
+        raise InputError(f"capture: unknown device(s) {', '.join(unknown)} (known: {', '.join(DEVICES)})")
     if "robot" not in devices:
-        raise ValueError("capture: devices must include robot (it moves the indenter)")
+        raise InputError(f"capture: devices must include robot (it moves the indenter)")
     for group in (FORCE_DEVICES, TACTILE_DEVICES):
         if sum(d in devices for d in group) > 1:
-            raise ValueError(f"capture: choose one of {' / '.join(group)}")
+            raise InputError(f"capture: choose one of {' / '.join(group)}")
     return list(dict.fromkeys(devices))
+
+
+def _positive_ints(value, n: int, what: str) -> tuple[int, ...]:
+    try:
+        out = tuple(int(v) for v in value)
+    except (TypeError, ValueError):
+        out = ()
+    if len(out) != n or min(out) < 1 or any(float(v) != int(v) for v in value):
+        raise InputError(f"{what} must be {n} whole numbers >= 1, got {value!r}")
+    return out
+
+
+def _check_params(devices, device_params, robot_p, cam_p, session, rate_hz) -> tuple[int, int]:
+    """Every shape and value the capture will use, checked before the staging file is touched
+    (a bad value found later would leave a staging file that the corrected run refuses).
+    Returns the camera's output size (h, w)."""
+    from stages.capture.twin import marker_layout
+    check_origin(robot_p["origin"])
+    for d in devices:
+        sign = device_params[d].get("sign")
+        if sign is not None and (np.shape(sign) != (3,) or not np.isfinite(np.asarray(sign, float)).all()):
+            raise InputError(f"{d}.sign must be 3 finite numbers (Fx, Fy, Fz), got {sign!r}")
+    cam_out = _positive_ints(cam_p["out_size"] or cam_p["size"], 2, "camera.out_size")
+    if "camera" in devices:
+        _positive_ints(cam_p["size"], 2, "camera.size")
+        marker_layout(str(cam_p["pattern"]), int(cam_p["pattern_seed"]))
+    if not (isinstance(rate_hz, (int, float)) and np.isfinite(rate_hz) and rate_hz >= 0):
+        raise InputError(f"capture.rate_hz must be a number >= 0 (0: as fast as the devices go), got {rate_hz!r}")
+    for key, low in (("frame_stride", 1), ("contacts_per_indenter", 0), ("chunk_frames", 1)):
+        if int(session[key]) < low or float(session[key]) != int(session[key]):
+            raise InputError(f"capture session: {key} must be a whole number >= {low}, got {session[key]!r}")
+    if not float(session["depth_scale"]) > 0:
+        raise InputError(f"capture session: depth_scale must be > 0, got {session['depth_scale']!r}")
+    return cam_out
 
 
 def plan(trajectory: Mapping, session: Mapping) -> tuple[dict, list[np.ndarray], np.ndarray]:
@@ -116,7 +153,7 @@ def plan(trajectory: Mapping, session: Mapping) -> tuple[dict, list[np.ndarray],
     keys = ("position", "depth", "shift", "phase", "contact_id", "indenter_id", "paired")
     missing = [k for k in keys + ("indenters",) if k not in trajectory]
     if missing:
-        raise KeyError(f"capture: the trajectory lacks {', '.join(missing)}")
+        raise InputError(f"capture: the trajectory lacks {', '.join(missing)}")
     t = {k: np.asarray(trajectory[k]) for k in keys}
     names = np.asarray(trajectory["indenters"]).astype(str)
     frames = select_frames(trajectory, int(session["contacts_per_indenter"]), int(session["frame_stride"]))
@@ -124,10 +161,10 @@ def plan(trajectory: Mapping, session: Mapping) -> tuple[dict, list[np.ndarray],
         wanted = [str(n) for n in session["indenters"]]
         bad = [n for n in wanted if n not in names]
         if bad:
-            raise KeyError(f"capture session: unknown indenter(s) {', '.join(bad)}")
+            raise InputError(f"capture session: unknown indenter(s) {', '.join(bad)}")
         frames = frames[np.isin(names[t["indenter_id"][frames]], wanted)]
     if frames.size == 0:
-        raise ValueError("capture: the trajectory selection has no frames")
+        raise InputError(f"capture: the trajectory selection has no frames")
     cuts = np.flatnonzero(np.diff(t["contact_id"][frames])) + 1
     return t, np.split(frames, cuts), names
 
@@ -186,10 +223,7 @@ class _Run:
         self.scale, self.cam_out = float(session["depth_scale"]), cam_out
         self.period = 1.0 / float(rate_hz) if rate_hz and rate_hz > 0 else 0.0
         self.max_depth = max_depth
-        mode = session["tool_change"]
-        if mode not in ("auto", "operator"):
-            raise ValueError(f"capture session: tool_change must be auto or operator, got {mode!r}")
-        self.operator = mode == "operator" or world is None
+        self.operator = session["tool_change"] == "operator" or world is None
         self.base = staging.counts()
         self.sign = np.asarray(self.ft.p["sign"], float) if self.ft is not None else np.ones(3)
         self.tare = np.zeros(6)
@@ -328,9 +362,9 @@ def capture(*, trajectory: Mapping, devices, robot: Mapping, netft: Mapping, ser
         client_class(d)(split_params(d, device_params[d])[0])
     robot_p = {**Robot.defaults, **{k: v for k, v in device_params["robot"].items() if k in Robot.defaults}}
     cam_p = {**Camera.defaults, **{k: v for k, v in device_params.get("camera", {}).items() if k in Camera.defaults}}
-    cam_out = tuple(int(v) for v in (cam_p["out_size"] or cam_p["size"]))
+    cam_out = _check_params(devices, device_params, robot_p, cam_p, s, rate_hz)
     if emulate and (spec is None or materials is None):
-        raise ValueError("capture: emulate: true needs the twin's sensor catalogue entry (spec) and materials")
+        raise InputError(f"capture: emulate: true needs the twin's sensor catalogue entry (spec) and materials")
     t, contacts, names = plan(trajectory, s)
     frames = np.concatenate(contacts)
     max_depth = float(s["max_depth_mm"] or np.max(t["depth"][frames]) * float(s["depth_scale"]) or 1.0)

@@ -20,6 +20,8 @@ from typing import Mapping
 
 import numpy as np
 
+from stages.common import InputError
+
 _ROWS_PER_CHUNK = 256
 BLOCK = 16                  # rows buffered between writes (a partial contact is dropped anyway)
 
@@ -47,8 +49,14 @@ class Staging:
         try:
             self.f = h5py.File(self.path, "w" if fresh else "a")
         except OSError as exc:
-            raise ValueError(f"staging file {self.path} cannot be opened ({exc}); remove it to start "
+            raise InputError(f"staging file {self.path} cannot be opened ({exc}); remove it to start "
                              "the capture over") from None
+        if not fresh and self.f.attrs.get("params") != text and not int(self.f.attrs.get("committed_contacts", 0)):
+            # other parameters but nothing captured yet (a run that failed before its first
+            # contact): nothing to keep, start over
+            self.f.close()
+            self.f = h5py.File(self.path, "w")
+            fresh = True
         if fresh:
             self.f.attrs.update({"params": text, "committed_rows": 0, "committed_contacts": 0,
                                  "sessions": 0, "counts": "{}", "seconds": 0.0, "complete": False})
@@ -56,7 +64,7 @@ class Staging:
             old, new = _flat(json.loads(self.f.attrs.get("params", "{}"))), _flat(json.loads(text))
             keys = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
             self.f.close()
-            raise ValueError(f"staging file {self.path} holds a capture with other parameters "
+            raise InputError(f"staging file {self.path} holds a capture with other parameters "
                              f"(differs in {', '.join(keys[:6])}); finish it with its parameters, "
                              "or remove it (or choose another session name) to start over")
         for name, (shape, dtype) in self.layout.items():

@@ -120,7 +120,8 @@ def marker_layout(name: str, seed: int = 0):
         return pt.gelsight_pattern(name[len("gelsight-"):], seed=seed)
     if name in ("tactip", "uskin"):
         return pt.tactip_pattern() if name == "tactip" else pt.uskin_pattern()
-    raise KeyError(f"unknown marker pattern {name!r}")
+    from stages.common import InputError
+    raise InputError(f"unknown marker pattern {name!r} (a simulation pattern, gelsight-<twin>, tactip or uskin)")
 
 
 class World:

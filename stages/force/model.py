@@ -47,7 +47,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from stages.common import attrs_of
+from stages.common import attrs_of, marker_images
 
 DEFAULT_CONFIG = {
     "input_size": 64,                     # side S of the area-resized input images
@@ -244,11 +244,11 @@ def _resize(images: np.ndarray, size: int) -> torch.Tensor:
 
 def prepare(images, reference, config: Mapping) -> torch.Tensor:
     """Marker images (T,H,W) uint8 0/255 + the sensor's reference (H,W) -> model input (T,C,S,S)."""
-    images = np.asarray(images)
+    images = marker_images(images, "force model images")
     if images.ndim == 2:
         images = images[None]
-    reference = np.asarray(reference)
-    if images.ndim != 3 or reference.shape != images.shape[1:]:
+    reference = marker_images(reference, "force model reference", (2,))
+    if reference.shape != images.shape[1:]:
         raise ValueError(f"images {images.shape} and reference {reference.shape} must be (T,H,W) and (H,W)")
     size = int(config["input_size"])
     x, ref = _resize(images, size), _resize(reference[None], size)
@@ -298,6 +298,9 @@ def predict_contacts(model: ForceRegressor, images, contact_id, reference=None, 
     ref = _reference_for(model, reference)
     dev = model.force_min.device
     contact_id = np.asarray(contact_id)
+    if contact_id.ndim != 1 or contact_id.size != len(images):
+        raise ValueError(f"contact_id {contact_id.shape} must give one contact per frame of images "
+                         f"{np.shape(images)}")
     starts = np.flatnonzero(np.r_[True, contact_id[1:] != contact_id[:-1]])
     ends = np.r_[starts[1:], contact_id.size]
     out = np.zeros((contact_id.size, 3), np.float32)
@@ -329,7 +332,7 @@ class StreamingPredictor:
     def __init__(self, model: ForceRegressor, reference=None):
         self.model = model.eval()
         self._dev = model.force_min.device          # the model's device (a control loop's: the CPU)
-        self._ref = _reference_for(model, reference)
+        self._ref = marker_images(_reference_for(model, reference), "StreamingPredictor reference", (2,))
         self._ref_input = _resize(self._ref[None], model.config["input_size"]).to(self._dev)
         self.h = None
 
@@ -337,7 +340,7 @@ class StreamingPredictor:
         """Forget the contact history (and optionally take a new reference image)."""
         self.h = None
         if reference is not None:
-            self._ref = np.asarray(reference)
+            self._ref = marker_images(reference, "StreamingPredictor reference", (2,))
             self._ref_input = _resize(self._ref[None], self.model.config["input_size"]).to(self._dev)
 
     @torch.no_grad()

@@ -47,7 +47,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from stages.common import attrs_of, torch_device
+from stages.common import attrs_of, marker_images, torch_device
 
 NOISE_SEED = 1234          # seed of the multi-step sampler's noise maps (NOISE_SEED + step)
 
@@ -242,6 +242,8 @@ def _resize(images: np.ndarray, size) -> np.ndarray:
     h, w = size
     if images.shape[-2:] == (h, w):
         return images
+    if len(images) == 0:
+        return np.zeros((0, h, w), np.uint8)
     import cv2
     interp = cv2.INTER_AREA if images.shape[-2] > h else cv2.INTER_LINEAR
     out = np.stack([cv2.resize(np.ascontiguousarray(im), (w, h), interpolation=interp) for im in images])
@@ -260,11 +262,15 @@ class Translator:
     def probabilities(self, images, source_reference, target_reference, steps: int = 1,
                       batch: int = 64) -> np.ndarray:
         """Target-marker probability (N,h,w) float32 at the model's size."""
-        images = np.asarray(images, np.uint8)
+        images = marker_images(images, "translator images")
         if images.ndim == 2:
             images = images[None]
-        refs = _resize(np.stack([np.asarray(source_reference, np.uint8),
-                                 np.asarray(target_reference, np.uint8)]), self.size)
+        source_reference = marker_images(source_reference, "translator source_reference", (2,))
+        target_reference = marker_images(target_reference, "translator target_reference", (2,))
+        if source_reference.shape != images.shape[1:]:
+            raise ValueError(f"translator: images {images.shape} and source_reference {source_reference.shape} "
+                             "must be (N,H,W) and (H,W)")
+        refs = np.stack([_resize(source_reference[None], self.size)[0], _resize(target_reference[None], self.size)[0]])
         refs_t = _to_unit(refs).to(self.device)
         out = []
         with torch.inference_mode():
@@ -278,7 +284,7 @@ class Translator:
                   batch: int = 64) -> np.ndarray:
         """Source marker images (N,H,W) uint8 -> the same deformations in the target's marker
         style, (N,H',W') uint8 0/255 at the target reference's size."""
-        target_reference = np.asarray(target_reference, np.uint8)
+        target_reference = marker_images(target_reference, "translator target_reference", (2,))
         prob = self.probabilities(images, source_reference, target_reference, steps, batch)
         binary = np.where(prob >= 0.5, 255, 0).astype(np.uint8)
         return _resize(binary, target_reference.shape)
@@ -287,6 +293,8 @@ class Translator:
 def load_translator(model) -> Translator:
     """A Translator from an M2M model artifact (node m2m_sim / m2m, or their return value)."""
     attrs = attrs_of(model)
-    if "config" not in attrs:
-        raise KeyError("model artifact has no 'config' attribute (not an M2M model?)")
+    config = attrs.get("config")
+    if not isinstance(config, Mapping) or not {"size", "width", "timesteps"} <= set(config):
+        raise ValueError("load_translator: not an M2M model artifact (node m2m_sim or m2m): its 'config' "
+                         f"attribute {'is missing' if config is None else 'lacks size/width/timesteps'}")
     return Translator(attrs["config"], weights_of(model))

@@ -303,10 +303,10 @@ def reference_set(names, *, size, gelsight_twins=GELSIGHT_TWINS, seed: int = 0) 
     Per pattern: `images/<name>` (H,W) uint8 0/255 and `markers/<name>/centers|axes|angles`
     in mm on the undeformed pad.
     """
-    from stages.common import ParamValueError
+    from stages.common import InputError
     from stages.figures import contact_sheet, png
     if len(size) != 2 or not all(isinstance(v, int) and v >= 32 for v in size):
-        raise ParamValueError(f"patterns.image_size must be [height, width] in pixels, each >= 32, got {size!r}")
+        raise InputError(f"patterns.image_size must be [height, width] in pixels, each >= 32, got {size!r}")
     sets = {n: pattern(n, seed=0) for n in names}
     sets.update({f"gelsight-{t}": gelsight_pattern(t, seed=seed) for t in gelsight_twins})
     sets["tactip"] = tactip_pattern()

@@ -21,7 +21,7 @@ import math
 
 import numpy as np
 
-from stages.common import ParamValueError
+from stages.common import InputError
 from stages.sim.indenters import ALL_INDENTERS, INDENTERS
 
 
@@ -29,17 +29,17 @@ def _indenter_ids(indenters) -> list[int]:
     ids = []
     for name in indenters:
         if name not in ALL_INDENTERS:
-            raise ParamValueError(f"unknown indenter {name!r} (known: {', '.join(ALL_INDENTERS)})")
+            raise InputError(f"unknown indenter {name!r} (known: {', '.join(ALL_INDENTERS)})")
         ids.append(ALL_INDENTERS.index(name))
     if not ids:
-        raise ParamValueError("the trajectory names no indenters")
+        raise InputError("the trajectory names no indenters")
     return ids
 
 
 def check_depths(depths_mm, what: str = "depths_mm") -> np.ndarray:
     dep = np.asarray(depths_mm, float)
     if dep.ndim != 1 or dep.size == 0 or not np.all(dep > 0):
-        raise ParamValueError(f"{what} must be a non-empty list of depths > 0 mm, got {depths_mm!r}")
+        raise InputError(f"{what} must be a non-empty list of depths > 0 mm, got {depths_mm!r}")
     return dep
 
 
@@ -121,7 +121,7 @@ def collection_trajectory(*, n_points: int = 5, point_offset_mm: float = 3.0,
     ``points`` (n_points, 2) mm and ``directions_deg`` (n_directions,) (not per frame).
     """
     if rate_hz <= 0 or speed_mm_s <= 0 or n_paired < 1 or dwell_samples < 0:
-        raise ParamValueError("rate_hz, speed_mm_s, n_paired must be positive; dwell_samples >= 0")
+        raise InputError("rate_hz, speed_mm_s, n_paired must be positive; dwell_samples >= 0")
     ids = _indenter_ids(indenters)
     points = surface_points(n_points, point_offset_mm)
     levels = _depth_levels(depth_step_mm, max_depth_mm)

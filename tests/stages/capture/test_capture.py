@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from stages.capture import DeviceError
+from stages.common import InputError
 from tests.helpers import drain
 
 LABELS = ("force", "torque", "position", "target", "depth", "normalised_depth", "shift", "phase",
@@ -189,12 +190,35 @@ def test_slcan_disconnect_names_the_port(run_capture, tmp_path):
 
 
 def test_bad_requests_fail_before_any_device_starts(run_capture, tmp_path):
-    with pytest.raises(ValueError, match="devices must include robot"):
+    with pytest.raises(InputError, match="devices must include robot"):
         run_capture(tmp_path, devices=("netft",))
-    with pytest.raises(ValueError, match="choose one of netft / serial_ft"):
+    with pytest.raises(InputError, match="choose one of netft / serial_ft"):
         run_capture(tmp_path, devices=("robot", "netft", "serial_ft"))
-    with pytest.raises(ValueError, match=r"netft: unknown parameter\(s\) hostname"):
+    with pytest.raises(InputError, match=r"netft: unknown parameter\(s\) hostname"):
         run_capture(tmp_path, netft={"hostname": "x"})
-    with pytest.raises(ValueError, match=r"netft: unknown fault\(s\) explode"):
+    with pytest.raises(InputError, match=r"netft: unknown fault\(s\) explode"):
         run_capture(tmp_path, netft={"faults": {"explode": 1}})
-    assert os.listdir(tmp_path) == []
+    bad = [({"robot": {"origin": [0.4, 0.0]}}, r"robot origin must be 6 finite numbers"),
+           ({"netft": {"sign": [1.0, 1.0]}}, r"netft.sign must be 3 finite numbers \(Fx, Fy, Fz\), got \[1.0, 1.0\]"),
+           ({"camera": {"size": [480]}}, r"camera.size must be 2 whole numbers >= 1, got \[480\]"),
+           ({"camera": {"out_size": [0, 64]}}, r"camera.out_size must be 2 whole numbers >= 1, got \[0, 64\]"),
+           ({"camera": {"pattern": "nosuch"}}, r"unknown marker pattern 'nosuch'"),
+           ({"session": {"frame_stride": 0}}, r"frame_stride must be a whole number >= 1, got 0"),
+           ({"session": {"indenters": ["nosuch"]}}, r"unknown indenter\(s\) nosuch"),
+           ({"session": {"tool_change": "bogus"}}, r"tool_change must be auto or operator, got 'bogus'"),
+           ({"netft": {"mode": "bogus"}}, r"netft: mode must be poll or stream, got 'bogus'")]
+    for params, message in bad:
+        with pytest.raises(InputError, match=message) as err:
+            run_capture(tmp_path, **params)
+        assert err.value.user_error is True
+    assert os.listdir(tmp_path) == []       # caught before the staging file is made
+
+
+def test_a_staging_file_with_no_contact_yields_to_corrected_parameters(run_capture, baseline, tmp_path):
+    """A run that failed before its first contact leaves nothing worth keeping: the corrected
+    run starts over instead of refusing the file's other parameters."""
+    with pytest.raises(DeviceError):
+        run_capture(tmp_path, netft={"faults": {"disconnect_after": 1}}, camera={"out_size": [30, 40]})
+    assert len(os.listdir(tmp_path)) == 1
+    got, _ = run_capture(tmp_path)
+    np.testing.assert_array_equal(got["force"], baseline[0]["force"])

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from stages.capture.ingest import infer_phase, ingest, paired_frames, write_example_dataset
+from stages.common import InputError
 from stages.sim.indenters import ALL_INDENTERS
 from tests.helpers import drain
 
@@ -76,21 +77,42 @@ def test_phase_inference_holds_and_shears():
 
 
 def test_broken_datasets_name_the_file(tmp_path):
+    """Each is the user's InputError (one line, exit 2 from the engine), naming the file."""
     base = write_example_dataset(tmp_path, "s", indenters=("sphere",), contacts=2, frames=6, seed=0)
-    with pytest.raises(ValueError, match=r"no folder .*/nope \(expected"):
+    with pytest.raises(InputError, match=r"no folder .*/nope \(expected"):
         drain(ingest(root=str(tmp_path), sensor="nope", size=(48, 64)))
     contact = os.path.join(base, "sphere", "2")
     np.save(os.path.join(contact, "markers.npy"), np.zeros((6, 480, 640), np.uint8))
-    with pytest.raises(ValueError, match=r"sphere/2/markers\.npy holds uint8 \(6, 480, 640\); "
+    with pytest.raises(InputError, match=r"sphere/2/markers\.npy holds uint8 \(6, 480, 640\); "
                                          r"expected uint8 \(N, 480, 80\)"):
         drain(ingest(root=str(tmp_path), sensor="s", size=(48, 64)))
     np.save(os.path.join(contact, "markers.npy"), np.zeros((5, 480, 80), np.uint8))
-    with pytest.raises(ValueError, match=r"sphere/2/markers\.npy has 5 frames but .*sphere/2/depth\.csv has 6 rows"):
+    with pytest.raises(InputError, match=r"sphere/2/markers\.npy has 5 frames but .*sphere/2/depth\.csv has 6 rows"):
         drain(ingest(root=str(tmp_path), sensor="s", size=(48, 64)))
     with open(os.path.join(contact, "ft.csv"), "w") as f:
         f.write("Fx,Fy,Fz\n0,0,0\n")
-    with pytest.raises(ValueError, match=r"sphere/2/ft\.csv lacks column\(s\) Tx, Ty, Tz"):
+    with pytest.raises(InputError, match=r"sphere/2/ft\.csv lacks column\(s\) Tx, Ty, Tz"):
         drain(ingest(root=str(tmp_path), sensor="s", size=(48, 64)))
     os.remove(os.path.join(contact, "ft.csv"))
-    with pytest.raises(ValueError, match=r"missing file .*sphere/2/ft\.csv"):
+    with pytest.raises(InputError, match=r"missing file .*sphere/2/ft\.csv"):
         drain(ingest(root=str(tmp_path), sensor="s", size=(48, 64)))
+
+
+def test_unreadable_values_and_files_name_the_file(tmp_path):
+    base = write_example_dataset(tmp_path, "s", indenters=("sphere",), contacts=2, frames=6, seed=0)
+    contact = os.path.join(base, "sphere", "1")
+    for size in ([48], [0, 64], [48.0, 64]):
+        with pytest.raises(InputError, match=r"ingest.size must be \[height, width\] in pixels, each >= 8"):
+            drain(ingest(root=str(tmp_path), sensor="s", size=size))
+    depth = os.path.join(contact, "depth.csv")
+    rows = open(depth).read().splitlines()
+    rows[3] = ",".join(["nan"] + rows[3].split(",")[1:])
+    open(depth, "w").write("\n".join(rows) + "\n")
+    with pytest.raises(InputError, match=r"sphere/1/depth\.csv row 4 holds a value that is not a finite number"):
+        drain(ingest(root=str(tmp_path), sensor="s", size=(48, 64)))
+    write_example_dataset(tmp_path, "s", indenters=("sphere",), contacts=2, frames=6, seed=0)
+    with open(os.path.join(contact, "markers.npy"), "r+b") as f:
+        f.truncate(100)
+    with pytest.raises(InputError, match=r"sphere/1/markers\.npy is not a readable \.npy array"):
+        drain(ingest(root=str(tmp_path), sensor="s", size=(48, 64)))
+    assert InputError("x").user_error is True

@@ -67,6 +67,29 @@ def test_predict_contacts_resets_state_per_contact(trained):
     assert np.abs(carried - both[14:]).max() > 1e-4
 
 
+def test_wrong_inputs_name_what_was_expected(trained):
+    """The Python entry points refuse what they cannot read instead of casting it: float or
+    negative images would otherwise become uint8 garbage, and a contact_id of the wrong
+    length would silently give as many rows as it has."""
+    model, _, images, _, _ = trained
+    frames = np.concatenate(images[:2])
+    bad = [(lambda: predict_sequence(model, frames / 255.0, REF),
+            r"force model images: expected uint8 marker images \(0/255\), got float64"),
+           (lambda: predict_sequence(model, frames.astype(np.int16) - 1, REF), r"values -1\.\.254 outside"),
+           (lambda: predict_sequence(model, frames[:, None], REF),
+            r"force model images: expected \(H,W\) or \(N,H,W\) marker images, got shape \(28, 1,"),
+           (lambda: predict_contacts(model, frames, np.repeat([5, 9], 13), REF),
+            r"contact_id \(26,\) must give one contact per frame of images \(28,"),
+           (lambda: predict_contacts(model, frames, np.repeat([5, 9], 14)[None], REF), r"contact_id \(1, 28\)"),
+           (lambda: StreamingPredictor(model).reset(np.stack([REF] * 3, -1)),
+            r"StreamingPredictor reference: expected \(H,W\) marker images, got shape \(\d+, \d+, 3\)")]
+    for call, message in bad:
+        with pytest.raises(ValueError, match=message):
+            call()
+    np.testing.assert_array_equal(predict_sequence(model, frames > 127, REF),
+                                  predict_sequence(model, np.where(frames > 127, 255, 0).astype(np.uint8), REF))
+
+
 def test_arrays_round_trip_exact(trained):
     model, _, images, _, _ = trained
     arrays = to_arrays(model)

@@ -42,8 +42,23 @@ def test_weights_round_trip_through_arrays_gives_identical_outputs():
     assert 0.05 < (direct >= 0.5).mean() < 0.95          # the random net is not saturated
     with pytest.raises(KeyError, match="do not fit"):
         build(default_config(size=(32, 32), width=16), weights)
-    with pytest.raises(KeyError, match="config"):
+    with pytest.raises(ValueError, match=r"not an M2M model artifact \(node m2m_sim or m2m\): its 'config' "
+                                         r"attribute is missing"):
         load_translator({"weights": weights})
+    with pytest.raises(ValueError, match="its 'config' attribute lacks size/width/timesteps"):
+        load_translator({"weights": weights, "attrs": {"config": {"input_size": 64}}})   # a force model's
+    bad = [(imgs[:, None], refs[0], r"translator images: expected \(H,W\) or \(N,H,W\) marker images, got shape \(5, 1,"),
+           (imgs[0, 0], refs[0], r"translator images: expected \(H,W\) or \(N,H,W\) marker images, got shape \(\d+,\)"),
+           (imgs / 255.0, refs[0], r"translator images: expected uint8 marker images \(0/255\), got float64"),
+           (imgs.astype(np.int16) - 1, refs[0], r"translator images: values -1\.\.254 outside"),
+           (imgs, refs, r"translator source_reference: expected \(H,W\) marker images, got shape \(2,"),
+           (imgs, refs[0, :10], r"translator: images \(5, \d+, \d+\) and source_reference \(10, \d+\) must be")]
+    for images, ref, message in bad:
+        with pytest.raises(ValueError, match=message):
+            t.translate(images, ref, refs[1])
+    assert t.translate(imgs[:0], refs[0], refs[1]).shape == (0, *refs[1].shape)
+    np.testing.assert_array_equal(t.probabilities(imgs > 127, refs[0], refs[1]),
+                                  t.probabilities(np.where(imgs > 127, 255, 0).astype(np.uint8), refs[0], refs[1]))
     assert set(weights_of(flat)) == set(weights)
 
 

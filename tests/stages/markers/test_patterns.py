@@ -169,7 +169,7 @@ def test_golden_array2_digest_and_png():
 
 @pytest.mark.parametrize("size", [[96], [96, 20], [96.0, 96]])
 def test_reference_set_rejects_an_unusable_image_size(size):
-    from stages.common import ParamValueError
+    from stages.common import InputError
     from stages.markers.patterns import reference_set
-    with pytest.raises(ParamValueError, match=r"patterns.image_size must be \[height, width\] in pixels, each >= 32"):
+    with pytest.raises(InputError, match=r"patterns.image_size must be \[height, width\] in pixels, each >= 32"):
         reference_set(["Array1"], size=size)

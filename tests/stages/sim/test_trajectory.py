@@ -189,7 +189,7 @@ def test_calibration_trajectory_shear_leg():
 def test_unusable_values_are_the_users_one_line_errors(make, kwargs, message):
     """A param of the right type that names nothing usable is bad input (the engine prints it
     in one line, exit 2), not a crash of the node."""
-    from stages.common import ParamValueError
-    with pytest.raises(ParamValueError) as err:
+    from stages.common import InputError
+    with pytest.raises(InputError) as err:
         make(**kwargs)
     assert message in str(err.value) and err.value.user_error is True
