@@ -346,7 +346,7 @@ class StreamingPredictor:
     @torch.no_grad()
     def step(self, image) -> np.ndarray:
         """One (H,W) uint8 marker image -> (Fx, Fy, Fz) N as a (3,) float32 array."""
-        image = np.asarray(image)
+        image = marker_images(image, "StreamingPredictor.step image", (2,))
         if image.shape != self._ref.shape:
             raise ValueError(f"image {image.shape} does not match the reference {self._ref.shape}")
         x = _resize(image[None], self.model.config["input_size"]).to(self._dev)

@@ -81,6 +81,8 @@ def test_wrong_inputs_name_what_was_expected(trained):
            (lambda: predict_contacts(model, frames, np.repeat([5, 9], 13), REF),
             r"contact_id \(26,\) must give one contact per frame of images \(28,"),
            (lambda: predict_contacts(model, frames, np.repeat([5, 9], 14)[None], REF), r"contact_id \(1, 28\)"),
+           (lambda: StreamingPredictor(model).step(frames[0] / 255.0),
+            r"StreamingPredictor.step image: expected uint8 marker images \(0/255\), got float64"),
            (lambda: StreamingPredictor(model).reset(np.stack([REF] * 3, -1)),
             r"StreamingPredictor reference: expected \(H,W\) marker images, got shape \(\d+, \d+, 3\)")]
     for call, message in bad:
