@@ -43,7 +43,7 @@ def transfer_study(*, study: str, groups: Mapping[str, list], features: Mapping,
     for group in groups.values():
         pairs += [[str(s), str(t)] for s, t in group if [str(s), str(t)] not in pairs]
     images = image_study(study=study, pairs=pairs, features=features, translated=translated,
-                         warped=warped, kid_subset=kid_subset)
+                         warped=warped, kid_subset=kid_subset, markers=markers)
     force = force_study(study=study, pairs=pairs, own=own, transfer=transfer, markers=markers,
                         test_indenters=test_indenters, trace_frames=trace_frames, seeds=seeds,
                         seen_indenters=seen_indenters)

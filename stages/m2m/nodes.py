@@ -400,11 +400,12 @@ def image_study(*, study: str, pairs: list, features: Mapping, translated: Mappi
     the target's), `m2m` (translated vs target) and `flow_warp` (warped vs target), their
     means, (S,S) matrices fid/<method>, kid/<method> (NaN off the pairs), heatmaps and t-SNE.
 
-    With `markers` (the skins' marker artifacts, for skins whose paired frames show one and
-    the same deformation, as the simulation patterns' do): whether each method keeps the
-    deformation, `motion_err_px` per pair and method (stages.m2m.flow.motion_error on the
-    evaluation frames against the target's own; `before` is the target's reference, which
-    keeps none of it, so it scores the markers' mean motion), matrices motion_err/<method>."""
+    With `markers` (the skins' marker artifacts): for the pairs whose two skins' evaluation
+    frames show one and the same deformation (equal force labels: one mechanical twin, as the
+    simulation patterns and the GelSight twins are), whether each method keeps it,
+    `motion_err_px` per pair and method (stages.m2m.flow.motion_error on the evaluation frames
+    against the target's own; `before` is the target's reference, which keeps none of it, so
+    it scores the markers' mean motion), matrices motion_err/<method> and a heatmap."""
     from stages.imagemetrics import fid, heatmaps_figure, kid
     t0 = time.perf_counter()
     pairs = [(str(s), str(t)) for s, t in pairs]
@@ -444,6 +445,7 @@ def image_study(*, study: str, pairs: list, features: Mapping, translated: Mappi
     motion = {}
     if markers:
         motion = _motion_errors(study, pairs, names, index, features, markers, sources, methods, metrics)
+    if motion:
         figures["motion"] = figure_png(heatmaps_figure(motion, names, "marker motion error (px)"))
     if gen_feats:
         figures["tsne"] = figure_png(_tsne_figure(names, feats, gen_feats))
@@ -462,35 +464,47 @@ def image_study(*, study: str, pairs: list, features: Mapping, translated: Mappi
 
 
 def _motion_errors(study, pairs, names, index, features, markers, sources, methods, metrics) -> dict:
-    """image_study's motion_err_px of every pair whose target is in `markers` (see there)."""
+    """image_study's motion_err_px of every pair of skins in `markers` whose evaluation frames
+    carry the same force labels in both (one mechanical twin, so one deformation; see there)."""
     from stages.m2m.flow import motion_error
 
-    def frames_of(art, wanted):  # art's images of the frames `wanted`, in that order
+    def rows_of(art, wanted):  # art's rows of the frames `wanted`, in that order
         pos = {int(f): r for r, f in enumerate(np.asarray(art["frame"]))}
         missing = [int(f) for f in wanted if int(f) not in pos]
         if missing:
             raise KeyError(f"evaluation frames {missing[:5]} missing from an artifact")
-        rows = np.asarray([pos[int(f)] for f in wanted])
+        return np.asarray([pos[int(f)] for f in wanted])
+
+    def read(arr, rows):  # read_rows wants sorted rows
         order = np.argsort(rows)
-        out = np.empty((len(rows), *np.shape(art["images"])[1:]), np.uint8)
-        out[order] = read_rows(art["images"], rows[order])
+        data = read_rows(arr, rows[order])
+        out = np.empty_like(data)
+        out[order] = data
         return out
 
     out = {m: np.full((len(names),) * 2, np.nan) for m in methods}
+    scored = False
     for s, t in pairs:
-        if t not in markers:
+        if s not in markers or t not in markers:
             continue
         frames = np.asarray(features[t]["eval_frames"])
-        truth = frames_of(markers[t], frames)
+        rows_s, rows_t = rows_of(markers[s], frames), rows_of(markers[t], frames)
+        if not np.array_equal(read(markers[s]["force"], rows_s), read(markers[t]["force"], rows_t)):
+            continue                 # two twins pressed alike but deformed differently
+        truth = read(markers[t]["images"], rows_t)
         reference = np.asarray(markers[t]["reference"], np.uint8)
         for m in methods:
             if m == "before":
                 images = np.broadcast_to(reference, truth.shape)
             else:
-                images = frames_of(sources[m][pair_label(s, t)], frames)
+                art = sources[m][pair_label(s, t)]
+                images = read(art["images"], rows_of(art, frames))
             err, _, _ = motion_error(images, truth, reference)
             out[m][index[s], index[t]] = err
             metrics[f"{study}/{s}_{t}/{m}/motion_err_px"] = err
+        scored = True
+    if not scored:
+        return {}
     for m in methods:
         metrics[f"{study}/mean/{m}/motion_err_px"] = float(np.nanmean(out[m]))
     return out

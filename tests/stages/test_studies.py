@@ -24,7 +24,7 @@ def test_transfer_study_keeps_its_parts_timings_out_of_the_content(monkeypatch):
     seen = {}
 
     def image_study(**kw):
-        seen["image_pairs"] = kw["pairs"]
+        seen["image_pairs"], seen["markers"] = kw["pairs"], kw["markers"]
         return {"fid": [[1.0]], "figures": {"fid": b"png"}, "metrics": {"s/mean/m2m/fid": 2.0},
                 "attrs": {"pairs": len(kw["pairs"])}, "timing": {"seconds": 4.25}}
 
@@ -35,9 +35,10 @@ def test_transfer_study_keeps_its_parts_timings_out_of_the_content(monkeypatch):
     monkeypatch.setattr(m2m_nodes, "image_study", image_study)
     monkeypatch.setattr(force_nodes, "force_study", force_study)
     out = transfer_study(study="s", groups={"one": [["a", "b"]], "two": [["b", "a"], ["a", "b"]]},
-                         features={}, translated={}, warped={}, own={}, transfer={}, markers={},
+                         features={}, translated={}, warped={}, own={}, transfer={}, markers={"a": "A"},
                          test_indenters=["x"], kid_subset=2, trace_frames=10)
     assert seen["image_pairs"] == [["a", "b"], ["b", "a"]]          # a pair in two groups, once
+    assert seen["markers"] == {"a": "A"}                           # the motion errors' truth
     assert out["images"] == {"fid": [[1.0]]} and out["force"] == {"mae": [[0.5]]}
     assert out["timing"] == {"images": {"seconds": 4.25}}
     assert out["figures"] == {"images_fid": b"png", "force_radar": b"png"}

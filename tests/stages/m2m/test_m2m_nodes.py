@@ -80,6 +80,30 @@ def test_trained_model_keeps_the_deformation(skins, trained, monkeypatch):
     assert out["motion_err"]["m2m"].shape == (3, 3) and "motion" in out["figures"]
 
 
+def test_motion_errors_only_where_both_skins_deformed_alike(skins, monkeypatch):
+    """Pairs of one mechanical twin (equal force labels) are scored, others are not: their
+    target's own frames are not the truth for the source's deformation."""
+    monkeypatch.setattr("stages.imagemetrics.inception_features", lambda images, **kw: np.mean(images, axis=2))
+    pairs = [["Array3", "Diamond3"], ["Diamond3", "Circle3"]]
+    feats = {n: nodes.image_features(markers=skins[n], eval_indenters=["wave"], n_eval=8) for n in SKINS}
+    warped = {}
+    for s, t in pairs:
+        chunks, out = run_node(nodes.flow_warp_sequence(source_markers=skins[s], target_markers=skins[t],
+                                                        eval_indenters=["wave"], n_eval=8))
+        warped[nodes.pair_label(s, t)] = {**out, **{k: np.concatenate([c[k] for c in chunks])
+                                                    for k in ("images", "frame")}}
+    run = dict(study="s", pairs=pairs, features=feats, translated=warped, kid_subset=4)
+    m = nodes.image_study(**run, markers=skins)["metrics"]
+    for s, t in pairs:
+        assert m[f"s/{s}_{t}/m2m/motion_err_px"] < 0.5 * m[f"s/{s}_{t}/before/motion_err_px"]
+    other = dict(skins, Circle3={**skins["Circle3"], "force": skins["Circle3"]["force"] + 1.0})
+    out = nodes.image_study(**run, markers=other)
+    assert "s/Diamond3_Circle3/m2m/motion_err_px" not in out["metrics"]
+    assert out["metrics"]["s/mean/m2m/motion_err_px"] == m["s/Array3_Diamond3/m2m/motion_err_px"]
+    assert set(nodes.image_study(**run)["figures"]) == {"fid", "kid", "tsne"}      # no markers: no motion
+    assert "motion" in out["figures"] and np.isnan(out["motion_err"]["m2m"][2, 0])
+
+
 def test_translation_streams_labels_and_matches_flow_warp_layout(skins, trained, monkeypatch):
     monkeypatch.setattr(nodes, "CHUNK", 20)
     monkeypatch.setattr("stages.imagemetrics.inception_features",
