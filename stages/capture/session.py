@@ -106,7 +106,7 @@ def _check_devices(devices) -> list[str]:
     if unknown:
         raise InputError(f"capture: unknown device(s) {', '.join(unknown)} (known: {', '.join(DEVICES)})")
     if "robot" not in devices:
-        raise InputError(f"capture: devices must include robot (it moves the indenter)")
+        raise InputError("capture: devices must include robot (it moves the indenter)")
     for group in (FORCE_DEVICES, TACTILE_DEVICES):
         if sum(d in devices for d in group) > 1:
             raise InputError(f"capture: choose one of {' / '.join(group)}")
@@ -164,7 +164,7 @@ def plan(trajectory: Mapping, session: Mapping) -> tuple[dict, list[np.ndarray],
             raise InputError(f"capture session: unknown indenter(s) {', '.join(bad)}")
         frames = frames[np.isin(names[t["indenter_id"][frames]], wanted)]
     if frames.size == 0:
-        raise InputError(f"capture: the trajectory selection has no frames")
+        raise InputError("capture: the trajectory selection has no frames")
     cuts = np.flatnonzero(np.diff(t["contact_id"][frames])) + 1
     return t, np.split(frames, cuts), names
 
@@ -364,7 +364,7 @@ def capture(*, trajectory: Mapping, devices, robot: Mapping, netft: Mapping, ser
     cam_p = {**Camera.defaults, **{k: v for k, v in device_params.get("camera", {}).items() if k in Camera.defaults}}
     cam_out = _check_params(devices, device_params, robot_p, cam_p, s, rate_hz)
     if emulate and (spec is None or materials is None):
-        raise InputError(f"capture: emulate: true needs the twin's sensor catalogue entry (spec) and materials")
+        raise InputError("capture: emulate: true needs the twin's sensor catalogue entry (spec) and materials")
     t, contacts, names = plan(trajectory, s)
     frames = np.concatenate(contacts)
     max_depth = float(s["max_depth_mm"] or np.max(t["depth"][frames]) * float(s["depth_scale"]) or 1.0)
