@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import threading
 import time
 from pathlib import Path
 from typing import Any, Iterator, Mapping
@@ -20,6 +21,7 @@ from pipeline.hashing import ContentDigest
 
 COMPRESS_MIN_BYTES = 1 << 16
 CHUNK_BYTES = 1 << 20
+OVERLAP_BYTES = 1 << 20   # arrays this large are digested in a thread while HDF5 writes them
 READ_BLOCK_BYTES = 1 << 24
 _STR = h5py.string_dtype("utf-8")
 PROVENANCE_ATTR = "pipeline"  # one JSON attribute: node, params, code, inputs, digest, ...
@@ -56,6 +58,33 @@ def _plain_attr(name: str, value: Any) -> Any:
         raise PipelineError(f"attribute '{name}': cannot store {type(value).__name__}") from None
 
 
+def _overlapped(write, digest, nbytes: int) -> None:
+    """write() and digest() of one array, both done on return.  A large array is digested in
+    a thread meanwhile: hashlib releases the GIL on large buffers, so the hash and HDF5's
+    compression and write share two cores instead of taking turns on one.  Waiting for the
+    hash before returning keeps the caller free to refill its buffer."""
+    if nbytes < OVERLAP_BYTES:
+        write()
+        digest()
+        return
+    failed: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            digest()
+        except BaseException as exc:  # noqa: BLE001 - re-raised in the caller's thread
+            failed.append(exc)
+
+    thread = threading.Thread(target=run, name="artifact-digest", daemon=True)
+    thread.start()
+    try:
+        write()
+    finally:
+        thread.join()
+    if failed:
+        raise failed[0]
+
+
 class ArtifactWriter:
     """Collects datasets (whole or appended) and attributes; commit() publishes atomically."""
 
@@ -76,13 +105,16 @@ class ArtifactWriter:
         if name in self._streams or name in self._whole:
             raise PipelineError(f"dataset '{name}' written twice")
         arr = _as_array(name, value)
-        if arr.dtype.kind == "O":
-            self.file.create_dataset(name, data=arr, dtype=_STR)
-        elif arr.ndim and arr.nbytes >= COMPRESS_MIN_BYTES:
-            self.file.create_dataset(name, data=arr, compression="lzf", chunks=True)
-        else:
-            self.file.create_dataset(name, data=arr)
-        self.digest.update_whole(name, arr)
+
+        def write() -> None:
+            if arr.dtype.kind == "O":
+                self.file.create_dataset(name, data=arr, dtype=_STR)
+            elif arr.ndim and arr.nbytes >= COMPRESS_MIN_BYTES:
+                self.file.create_dataset(name, data=arr, compression="lzf", chunks=True)
+            else:
+                self.file.create_dataset(name, data=arr)
+        _overlapped(write, lambda: self.digest.update_whole(name, arr),
+                    0 if arr.dtype.kind == "O" else arr.nbytes)
         self._whole.add(name)
 
     def append(self, name: str, chunk: Any) -> None:
@@ -102,10 +134,13 @@ class ArtifactWriter:
             raise PipelineError(f"dataset '{name}': chunk {arr.dtype}{arr.shape[1:]} does not match "
                                 f"earlier chunks {ds.dtype}{ds.shape[1:]}")
         n = ds.shape[0]
-        ds.resize(n + arr.shape[0], axis=0)
-        ds[n:] = arr
+
+        def write() -> None:
+            ds.resize(n + arr.shape[0], axis=0)
+            ds[n:] = arr
         # hashed before returning: the caller may refill the same buffer for the next chunk
-        self.digest.update(name, arr, dtype=arr.dtype.str, shape_tail=arr.shape[1:])
+        _overlapped(write, lambda: self.digest.update(name, arr, dtype=arr.dtype.str, shape_tail=arr.shape[1:]),
+                    arr.nbytes)
 
     def set_attrs(self, attrs: Mapping[str, Any]) -> None:
         for k, v in attrs.items():

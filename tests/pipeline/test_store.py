@@ -210,6 +210,41 @@ def test_reused_buffer_and_mixed_chunk_sizes_digest_correctly(tmp_path):
         assert [int(a["images"][i * 8, 0, 0]) for i in range(10)] == list(range(10))
 
 
+def test_large_chunks_digested_while_written_match_small_ones(tmp_path):
+    """Chunks of OVERLAP_BYTES or more are hashed in a thread while HDF5 writes them: the
+    digest must equal the one-thread digest of the same data, even from a reused buffer."""
+    from pipeline import artifact
+    store = Store(tmp_path).init()
+    x = np.random.default_rng(3).integers(0, 255, (48, 256, 256), dtype=np.uint8)  # 3 MiB
+    w = store.writer("big", {"node": "n", "instance": "n", "key": "big", "inputs": {}})
+    buf = np.empty((16, 256, 256), np.uint8)  # 1 MiB: overlapped
+    assert buf.nbytes >= artifact.OVERLAP_BYTES
+    for i in range(0, 48, 16):
+        buf[:] = x[i:i + 16]
+        w.append("images", buf)
+    w.put("whole", x)
+    big = w.commit()
+    w = store.writer("small", {"node": "n", "instance": "n", "key": "small", "inputs": {}})
+    for i in range(48):  # 64 KiB chunks: hashed in the caller's thread
+        w.append("images", x[i:i + 1])
+    w.put("whole", x.copy())
+    assert w.commit()["digest"] == big["digest"]
+    assert verify_file(store.path("big")) == (True, "ok")
+
+
+def test_a_failing_digest_thread_fails_the_write(tmp_path, monkeypatch):
+    store = Store(tmp_path).init()
+    w = store.writer("k", {"node": "n", "instance": "n", "key": "k", "inputs": {}})
+
+    def broken(*args, **kwargs):
+        raise MemoryError("digest thread ran out")
+    monkeypatch.setattr(w.digest, "update", broken)
+    with pytest.raises(MemoryError, match="digest thread ran out"):
+        w.append("images", np.zeros((32, 256, 256), np.uint8))
+    w.abort()
+    assert not store.path("k").exists()
+
+
 def test_unicode_strings_round_trip(tmp_path):
     store = Store(tmp_path).init()
     write(store, "k", names=["bé", "Ω-pad"], label="tactip-é")
