@@ -145,6 +145,8 @@ GRAPH.node("sim_m2m", "stages.m2m.nodes:image_study",
 # -- force: regressors, transfer with material compensation, the studies ----------------------
 _FIT = {"config": "force.config", "steps": "force.steps", "batch_size": "force.batch_size",
         "lr": "force.lr", "seed": "force.seed"}
+# the transferred models' batch norm aligned on as many location-paired target frames as M2M's fine-tune reads
+_ALIGN = {"align": "force.align", "align_pairs": "m2m.finetune.pairs_per_skin"}
 GRAPH.node("own", "stages.force.nodes:fit_own",
            inputs={"markers": "markers[skin={skin}]"},
            params={**_FIT, "train_indenters": "splits.train_indenters"},
@@ -156,7 +158,7 @@ GRAPH.node("transfer", "stages.force.nodes:fit_transfer",
                    "target_calibration": "calibrate[sensor={target_spec[sensor]}]",
                    "target_markers": "markers[skin={target}]"},
            params={**_FIT, "finetune_steps": "force.finetune_steps", "compensation": "force.compensation",
-                   "compensation_depth": "force.compensation_depth",
+                   "compensation_depth": "force.compensation_depth", **_ALIGN,
                    "train_indenters": "splits.train_indenters",
                    "source_spec": "skins.{source}", "target_spec": "skins.{target}"},
            grid={"source,target": _TRANSFER_PAIRS},
@@ -173,8 +175,9 @@ GRAPH.node("material", "stages.studies:transfer_study", inputs=_STUDY,
            description="study material (paper Fig. 5): seven elastomers, with and without compensation")
 GRAPH.node("hetero_seed", "stages.force.nodes:fit_transfer_seed",
            inputs={"transfer": "transfer[source={source},target={target}]",
-                   "translated": "translate[source={source},target={target}]"},
-           params={k: v for k, v in _FIT.items() if k != "seed"} | {
+                   "translated": "translate[source={source},target={target}]",
+                   "target_markers": "markers[skin={target}]"},
+           params={k: v for k, v in _FIT.items() if k != "seed"} | _ALIGN | {
                "finetune_steps": "force.finetune_steps", "train_indenters": "splits.train_indenters"},
            grid={"source,target": "hetero.groups.pairs", "seed": "hetero.seeds"},
            description="a hetero pair's genforce_comp trained again from other seeds (its spread)")
@@ -185,8 +188,9 @@ GRAPH.node("hetero", "stages.studies:transfer_study", inputs={**_STUDY, "seeds":
 # -- control: the transferred force model in a gripper's loop --------------------------------
 GRAPH.node("transfer_seed", "stages.force.nodes:fit_transfer_seed",
            inputs={"transfer": "transfer[source={model_pair[0]},target={model_pair[1]}]",
-                   "translated": "translate[source={model_pair[0]},target={model_pair[1]}]"},
-           params={k: v for k, v in _FIT.items() if k != "seed"} | {
+                   "translated": "translate[source={model_pair[0]},target={model_pair[1]}]",
+                   "target_markers": "markers[skin={model_pair[1]}]"},
+           params={k: v for k, v in _FIT.items() if k != "seed"} | _ALIGN | {
                "finetune_steps": "force.finetune_steps", "train_indenters": "splits.train_indenters",
                "model_pair": "control.model_pair"},
            grid={"seed": "control.ensemble_seeds"},

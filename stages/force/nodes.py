@@ -137,7 +137,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
                  compensation: str = "normal", compensation_depth: str = "shared",
                  target_markers: Mapping | None = None,
                  source_spec: Mapping | None = None, target_spec: Mapping | None = None,
-                 checkpoint: str | None = None) -> dict:
+                 align: str = "none", align_pairs: int = 0, checkpoint: str | None = None) -> dict:
     """Node `transfer[source,target]`: regressors on the source's sequences translated into the
     target's style (images; reference = the target's), trained with the source's labels
     (genforce) and with the labels compensated to the target's material (genforce_comp).
@@ -153,7 +153,10 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     `compensation_depth`: "shared" evaluates both curves at the source's normalised depth;
     "paired" evaluates the target's at the target's own normalised depth of the paired frame,
     k times the source's (compensation.depth_ratio, from the normalised depths of the source's
-    and `target_markers`' collections; no target label is read).  `checkpoint` (the
+    and `target_markers`' collections; no target label is read).  `align` ("none", "encoder",
+    "all"): both models' batch norm is then aligned to the target's own frames on
+    `align_pairs` location-paired frames of `train_indenters` (align_models; images only).
+    `checkpoint` (the
     engine's): an interrupted node re-runs none of its finished fits and resumes the one it
     was in (stages.force.train.Checkpoint).
     """
@@ -184,19 +187,21 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     genforce, hist = fit_two_stage(seqs, model_cfg, desc=f"{name} genforce", checkpoint=ckpt,
                                    label="genforce", **kwargs)
     genforce.set_reference(reference)
-    weights = to_arrays(genforce)
     histories = {"genforce": hist}
-    models = {"genforce": genforce}
-    if identity:
-        weights_comp = {k: v.copy() for k, v in weights.items()}
-    else:
+    models = {"genforce": genforce, "genforce_comp": genforce}
+    if not identity:
         comp_seqs = [ContactSequence(s.inputs, comp[a:b]) for s, (a, b) in zip(seqs, runs)]
         genforce_comp, histories["genforce_comp"] = fit_two_stage(
             comp_seqs, model_cfg, desc=f"{name} genforce_comp", checkpoint=ckpt,
             label="genforce_comp", **kwargs)
         genforce_comp.set_reference(reference)
-        weights_comp = to_arrays(genforce_comp)
         models["genforce_comp"] = genforce_comp
+    models, aligned = align_models(models, translated, target_markers, train_indenters, align_pairs,
+                                   align, name)
+    weights = to_arrays(models["genforce"])
+    weights_comp = to_arrays(models["genforce_comp"])
+    if identity:
+        models.pop("genforce_comp")
     rows = np.concatenate([np.arange(a, b) for a, b in runs])
     scale = (np.ones(rows.size) if identity else
              label_scale(depth[rows], loading[rows], src_curves, tgt_curves, depth_ratio=k))
@@ -208,7 +213,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     return {"genforce": weights, "genforce_comp": weights_comp,
             "attrs": {"config": genforce.config, "train": train, "source": source, "target": target,
                       "compensation_identity": bool(identity), "compensation": compensation,
-                      "compensation_depth": compensation_depth, "depth_ratio": k,
+                      "compensation_depth": compensation_depth, "depth_ratio": k, "align": aligned,
                       "shear_ratio": shear_ratio(src_curves, tgt_curves, compensation, k),
                       "force_range": {m: {"min": mdl.config["force_min"], "max": mdl.config["force_max"]}
                                       for m, mdl in models.items()},
@@ -227,7 +232,8 @@ DEPTH_MODES = ("shared", "paired")
 def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, config: Mapping,
                       steps: int, batch_size: int, lr: float, finetune_steps: int,
                       train_indenters: Sequence[str] | None = None, model_pair=None,
-                      source: str = "", target: str = "", checkpoint: str | None = None) -> dict:
+                      source: str = "", target: str = "", target_markers: Mapping | None = None,
+                      align: str = "none", align_pairs: int = 0, checkpoint: str | None = None) -> dict:
     """Nodes `transfer_seed[seed]` and `hetero_seed[source,target,seed]`: `transfer`'s
     genforce_comp model trained again from another seed: the same translated contacts of
     `train_indenters`, the same labels (compensated with the curves, mode and depth ratio
@@ -236,7 +242,8 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
     control study's ensemble; model_pair: transfer's (source, target), which the graph's
     templates read), and their spread is the chance in a study's figure (hetero; source,
     target: the fan-out's values, which transfer's attrs hold too).  Returns genforce_comp
-    weights and attrs {config, source, target, seed, history}.  `checkpoint`: as fit_transfer's."""
+    weights and attrs {config, source, target, seed, history, align}.  `align`, `align_pairs`,
+    `target_markers` and `checkpoint`: as fit_transfer's."""
     from stages.force.compensation import Curves, compensate, loading_mask
     from stages.force.model import to_arrays
     from stages.force.train import fit_two_stage, make_sequences
@@ -263,10 +270,12 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
                                    finetune_lr_factor=float(train["finetune_lr_factor"]), desc=name,
                                    checkpoint=ckpt, label="seed")
     model.set_reference(reference)
+    models, aligned = align_models({"genforce_comp": model}, translated, target_markers, train_indenters,
+                                   align_pairs, align, name)
     kept, timing = _split_timing(history, ckpt)
-    return {"genforce_comp": to_arrays(model),
+    return {"genforce_comp": to_arrays(models["genforce_comp"]),
             "attrs": {"config": model.config, "train": train, "source": info["source"],
-                      "target": info["target"], "seed": int(seed), "history": kept},
+                      "target": info["target"], "seed": int(seed), "history": kept, "align": aligned},
             "timing": timing}
 
 
@@ -281,6 +290,49 @@ def _depth_ratio(mode: str, source_depth, target_markers, name: str) -> float:
         raise ValueError(f"{name}: compensation_depth 'paired' needs the target's collection "
                          "(target_markers with normalised_depth)")
     return depth_ratio(source_depth, np.asarray(target_markers["normalised_depth"]))
+
+
+ALIGN_MODES = ("none", "encoder", "all")
+
+
+def _paired_rows(arr, rows: np.ndarray) -> np.ndarray:
+    """arr[rows] in the order of rows, read in increasing row order (datasets want that)."""
+    from stages.m2m.data import read_rows
+    order = np.argsort(rows)
+    return read_rows(arr, np.asarray(rows)[order])[np.argsort(order)]
+
+
+def align_models(models: Mapping, translated: Mapping, target_markers: Mapping | None,
+                 indenters: Sequence[str] | None, pairs: int, layers: str, name: str) -> tuple[dict, dict]:
+    """`models` (name -> ForceRegressor trained on `translated`) with their batch norm aligned
+    to the target's own frames (stages.force.align) on `pairs` location-paired frames of
+    `indenters` (0: all): the target's frames from `target_markers` beside the translations of
+    the source's frames at the same locations, as M2M's fine-tune pairs them; no label is read.
+    Returns (models, attrs); layers "none" returns them as they are.  One model object under
+    two names is aligned once."""
+    from stages.force.align import LAYERS, align_batchnorm
+    from stages.m2m.data import indenter_names as indenters_of
+    from stages.m2m.data import paired_table
+    if layers == "none":
+        return dict(models), {"layers": "none"}
+    if layers not in LAYERS:
+        raise ValueError(f"{name}: align {layers!r} is not one of {ALIGN_MODES}")
+    if target_markers is None or "images" not in target_markers:
+        raise ValueError(f"{name}: align {layers!r} needs the target's own frames (target_markers)")
+    if indenters is None:
+        indenters = indenters_of(translated)
+    frames, rows = paired_table({"translated": translated, "target": target_markers},
+                                ["translated", "target"], indenters, int(pairs))
+    fake = _paired_rows(translated["images"], rows[0])
+    real = _paired_rows(target_markers["images"], rows[1])
+    reference = np.asarray(translated["reference"])    # the target's, which the models keep
+    done: dict[int, object] = {}
+    out = {}
+    for key, model in models.items():
+        if id(model) not in done:
+            done[id(model)] = align_batchnorm(model, fake, real, reference, layers=layers)
+        out[key] = done[id(model)]
+    return out, {"layers": layers, "pairs": int(len(frames))}
 
 
 # ---------------------------------------------------------------------------- study node

@@ -635,3 +635,70 @@ def test_an_unreadable_or_foreign_force_checkpoint_is_set_aside_or_ignored(skins
         out = _transfer_run(skins, tiny_config, checkpoint=str(path), steps=8)
     assert "resumed_at_step" not in out["timing"]
     _same_node_output(out, whole)
+
+
+# ---------------------------------------------------------------------------- paired alignment
+
+def test_batchnorm_alignment_reads_an_affine_copy_of_the_frames_as_the_frames(trained):
+    """Target frames drawn at half intensity (an affine copy of their translations in the
+    network's input): unaligned, the model reads them far off; aligned on 4 paired contacts,
+    it reads 4 other contacts' dimmed frames as it reads their originals."""
+    from stages.force.align import align_batchnorm
+    model, _, images, _, _ = trained
+    frames = np.concatenate(images)
+    ids = np.repeat(np.arange(8), 14)
+    paired, held = ids < 4, ids >= 4
+    dim = frames // 2                                        # markers at 127 instead of 255
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    aligned = align_batchnorm(model, frames[paired], dim[paired], REF)
+    for k, v in model.state_dict().items():                 # the model itself is untouched
+        assert torch.equal(v, before[k]), k
+    truth = predict_contacts(model, frames[held], ids[held], REF)
+    off = np.abs(predict_contacts(model, dim[held], ids[held], REF) - truth).max()
+    on = np.abs(predict_contacts(aligned, dim[held], ids[held], REF) - truth).max()
+    assert off > 1.0 and on < 1e-3, (off, on)          # 5.0 N against 1e-4 N here
+    same = align_batchnorm(model, frames[paired], frames[paired], REF)   # no gap: no change
+    np.testing.assert_allclose(predict_contacts(same, frames[held], ids[held], REF), truth, atol=1e-4)
+    with pytest.raises(ValueError, match="paired frames"):
+        align_batchnorm(model, frames[:5], frames[:6], REF)
+
+
+def test_fit_transfer_aligns_its_models_on_paired_target_frames(nodes_out, skins, tiny_config):
+    """align "encoder": the transfer trains as before and then moves only its encoder's
+    batch-norm statistics, from 20 location-paired frames, so that a target drawing every
+    frame at half intensity reads as the unaligned models read the translations; the seed
+    models align the same way."""
+    _, _, stiffer = nodes_out
+    kw = dict(config={**tiny_config, "seq_len": 10}, steps=4, batch_size=2, lr=0.05, seed=0,
+              train_indenters=["sphere", "prism", "cone"])
+    translated = dict(skins["A"], paired=np.arange(len(skins["A"]["force"])) % 3 == 0)
+    dim = dict(translated, images=translated["images"] // 2)
+    out = fit_transfer(translated=translated, source_calibration=_calibration_art(1.0),
+                       target_calibration=_calibration_art(2.0), source="B", target="A",
+                       finetune_steps=0, target_markers=dim, align="encoder", align_pairs=20, **kw)
+    assert out["attrs"]["align"] == {"layers": "encoder", "pairs": 20}
+    assert stiffer["attrs"]["align"] == {"layers": "none"}
+    for method in ("genforce", "genforce_comp"):
+        moved = {k for k, v in out[method].items() if not np.array_equal(v, stiffer[method][k])}
+        assert moved and all(k.startswith("encoder.") and k.endswith(("running_mean", "running_var"))
+                             for k in moved), moved
+    ids = skins["A"]["contact_id"]
+    frames, dimmed = skins["A"]["images"], dim["images"]
+    truth = predict_contacts(load_model(stiffer, "genforce_comp"), frames, ids)
+    off = np.abs(predict_contacts(load_model(stiffer, "genforce_comp"), dimmed, ids) - truth).max()
+    on = np.abs(predict_contacts(load_model(out, "genforce_comp"), dimmed, ids) - truth).max()
+    assert off > 5e-3 and on < 1e-4, (off, on)           # 0.012 N against 3e-6 N here
+    transfer = json.loads(json.dumps({"attrs": stiffer["attrs"]}))
+    seed = fit_transfer_seed(transfer=transfer, translated=translated, seed=0, finetune_steps=0,
+                             target_markers=dim, align="encoder", align_pairs=20,
+                             **{k: v for k, v in kw.items() if k != "seed"})
+    for k, v in out["genforce_comp"].items():
+        np.testing.assert_array_equal(seed["genforce_comp"][k], v)
+    with pytest.raises(ValueError, match=r"transfer\[B->A\]: align 'encoder' needs the target's own frames"):
+        fit_transfer(translated=skins["A"], source_calibration=_calibration_art(1.0),
+                     target_calibration=_calibration_art(2.0), source="B", target="A",
+                     finetune_steps=0, align="encoder", **kw)
+    with pytest.raises(ValueError, match=r"align 'head' is not one of \('none', 'encoder', 'all'\)"):
+        fit_transfer(translated=skins["A"], source_calibration=_calibration_art(1.0),
+                     target_calibration=_calibration_art(2.0), source="B", target="A",
+                     finetune_steps=0, target_markers=dim, align="head", **kw)
