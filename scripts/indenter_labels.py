@@ -170,7 +170,7 @@ def contact_sizes(translated, target_markers, indenters) -> dict:
 def train_model(params, translated, target_markers, label_sets, train_ind, test_ind) -> None:
     from stages.force.metrics import force_metrics
     from stages.force.model import predict_contacts
-    from stages.force.nodes import _read_runs, _split_config, _test_set
+    from stages.force.nodes import _read_runs, _split_config, _test_set, align_models
     from stages.force.train import fit_two_stage, make_sequences
     fc = params["force"]
     model_cfg, train = _split_config(fc["config"])
@@ -183,6 +183,8 @@ def train_model(params, translated, target_markers, label_sets, train_ind, test_
                                  batch_size=int(fc["batch_size"]), lr=float(fc["lr"]), seed=int(fc["seed"]),
                                  seq_len=int(train["seq_len"]),
                                  finetune_lr_factor=float(train["finetune_lr_factor"]), desc=name)
+        model = align_models({name: model}, translated, target_markers, train_ind,     # as transfer does
+                             int(params["m2m"]["finetune"]["pairs_per_skin"]), fc["align"], name)[0][name]
         scores = []
         for split, data in sets.items():
             m = force_metrics(predict_contacts(model, data["images"], data["contact_id"], data["reference"]),
