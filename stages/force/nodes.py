@@ -164,6 +164,8 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
                                            label_scale, loading_mask, shear_ratio)
     from stages.force.model import to_arrays
     from stages.force.train import ContactSequence, fit_two_stage, loss_figure, make_sequences
+    name = f"transfer[{source}->{target}]"
+    _check_align(align, target_markers, name)
     model_cfg, train = _split_config(config)
     src_curves = curves_from_calibration(source_calibration)
     tgt_curves = curves_from_calibration(target_calibration)
@@ -182,7 +184,6 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     kwargs = dict(steps=int(steps), finetune_steps=int(finetune_steps), batch_size=int(batch_size),
                   lr=float(lr), seed=int(seed), seq_len=int(train["seq_len"]),
                   finetune_lr_factor=float(train["finetune_lr_factor"]))
-    name = f"transfer[{source}->{target}]"
     ckpt = _checkpoint(checkpoint)
     genforce, hist = fit_two_stage(seqs, model_cfg, desc=f"{name} genforce", checkpoint=ckpt,
                                    label="genforce", **kwargs)
@@ -249,6 +250,7 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
     from stages.force.train import fit_two_stage, make_sequences
     info = attrs_of(transfer)
     name = f"transfer[{info['source']}->{info['target']}] seed {seed}"
+    _check_align(align, target_markers, name)
     model_cfg, train = _split_config(config)
     runs = contact_runs(translated, train_indenters)
     if not runs:
@@ -295,11 +297,13 @@ def _depth_ratio(mode: str, source_depth, target_markers, name: str) -> float:
 ALIGN_MODES = ("none", "encoder", "all")
 
 
-def _paired_rows(arr, rows: np.ndarray) -> np.ndarray:
-    """arr[rows] in the order of rows, read in increasing row order (datasets want that)."""
-    from stages.m2m.data import read_rows
-    order = np.argsort(rows)
-    return read_rows(arr, np.asarray(rows)[order])[np.argsort(order)]
+def _check_align(layers: str, target_markers: Mapping | None, name: str) -> None:
+    """Before any training: an align mode the node cannot use is the user's error."""
+    from stages.common import InputError
+    if layers not in ALIGN_MODES:
+        raise InputError(f"{name}: align {layers!r} is not one of {ALIGN_MODES}")
+    if layers != "none" and (target_markers is None or "images" not in target_markers):
+        raise ValueError(f"{name}: align {layers!r} needs the target's own frames (target_markers)")
 
 
 def align_models(models: Mapping, translated: Mapping, target_markers: Mapping | None,
@@ -310,21 +314,18 @@ def align_models(models: Mapping, translated: Mapping, target_markers: Mapping |
     the source's frames at the same locations, as M2M's fine-tune pairs them; no label is read.
     Returns (models, attrs); layers "none" returns them as they are.  One model object under
     two names is aligned once."""
-    from stages.force.align import LAYERS, align_batchnorm
+    from stages.force.align import align_batchnorm
     from stages.m2m.data import indenter_names as indenters_of
-    from stages.m2m.data import paired_table
+    from stages.m2m.data import paired_table, take_rows
+    _check_align(layers, target_markers, name)
     if layers == "none":
         return dict(models), {"layers": "none"}
-    if layers not in LAYERS:
-        raise ValueError(f"{name}: align {layers!r} is not one of {ALIGN_MODES}")
-    if target_markers is None or "images" not in target_markers:
-        raise ValueError(f"{name}: align {layers!r} needs the target's own frames (target_markers)")
     if indenters is None:
         indenters = indenters_of(translated)
     frames, rows = paired_table({"translated": translated, "target": target_markers},
                                 ["translated", "target"], indenters, int(pairs))
-    fake = _paired_rows(translated["images"], rows[0])
-    real = _paired_rows(target_markers["images"], rows[1])
+    fake = take_rows(translated["images"], rows[0])
+    real = take_rows(target_markers["images"], rows[1])
     reference = np.asarray(translated["reference"])    # the target's, which the models keep
     done: dict[int, object] = {}
     out = {}

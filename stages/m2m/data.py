@@ -67,6 +67,12 @@ def read_rows(arr, rows: np.ndarray) -> np.ndarray:
     return np.asarray(arr[rows.tolist()])
 
 
+def take_rows(arr, rows) -> np.ndarray:
+    """arr[rows] for rows in any order, repeats allowed (read_rows wants them sorted, unique)."""
+    unique, inverse = np.unique(np.asarray(rows, int), return_inverse=True)
+    return read_rows(arr, unique)[inverse]
+
+
 def paired_table(markers: Mapping, skins: Sequence[str], indenters: Sequence[str],
                  per_skin: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Location-paired training frames shared by all `skins`.

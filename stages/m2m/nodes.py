@@ -19,7 +19,7 @@ import numpy as np
 
 from stages.figures import contact_sheet, figure_png, png
 from stages.common import attrs_of, torch_threads
-from stages.m2m.data import LABEL_KEYS, eval_frame_indices, paired_table, read_rows
+from stages.m2m.data import LABEL_KEYS, eval_frame_indices, paired_table, read_rows, take_rows
 
 CHUNK = 64              # frames per streamed chunk
 N_EXAMPLES = 4          # rows of the examples figure
@@ -246,12 +246,8 @@ def _paired_dot_changes(convert, source_markers, target_markers, indenters: Sequ
     from stages.markers.uskin import dot_changes
     _, rows = paired_table({"s": source_markers, "t": target_markers}, ["s", "t"], indenters, int(pairs))
 
-    def images(markers, r):                 # markers["images"][r], r in any order
-        unique, inverse = np.unique(r, return_inverse=True)
-        return read_rows(markers["images"], unique)[inverse]
-
-    fake_off, fake_area = dot_changes(convert(images(source_markers, rows[0])), settings)
-    real_off, real_area = dot_changes(images(target_markers, rows[1]), settings)
+    fake_off, fake_area = dot_changes(convert(take_rows(source_markers["images"], rows[0])), settings)
+    real_off, real_area = dot_changes(take_rows(target_markers["images"], rows[1]), settings)
     return fake_off, fake_area, real_off, real_area
 
 

@@ -7,7 +7,7 @@ import pytest
 import torch
 from sklearn.metrics import mean_absolute_error, r2_score
 
-from stages.common import torch_device
+from stages.common import InputError, torch_device
 from stages.force.compensation import (Curves, compensate, fit_curves, label_scale, loading_mask,
                                        shear_ratio)
 from stages.force.metrics import METRICS, force_metrics
@@ -698,7 +698,7 @@ def test_fit_transfer_aligns_its_models_on_paired_target_frames(nodes_out, skins
         fit_transfer(translated=skins["A"], source_calibration=_calibration_art(1.0),
                      target_calibration=_calibration_art(2.0), source="B", target="A",
                      finetune_steps=0, align="encoder", **kw)
-    with pytest.raises(ValueError, match=r"align 'head' is not one of \('none', 'encoder', 'all'\)"):
-        fit_transfer(translated=skins["A"], source_calibration=_calibration_art(1.0),
+    with pytest.raises(InputError, match=r"align 'head' is not one of \('none', 'encoder', 'all'\)"):
+        fit_transfer(translated=skins["A"], source_calibration=_calibration_art(1.0),   # before training
                      target_calibration=_calibration_art(2.0), source="B", target="A",
-                     finetune_steps=0, target_markers=dim, align="head", **kw)
+                     finetune_steps=0, target_markers=dim, align="head", checkpoint="/nonexistent/x", **kw)

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from stages.m2m.data import eval_frame_indices, evenly, frames_of, paired_table
+from stages.m2m.data import eval_frame_indices, evenly, frames_of, paired_table, take_rows
 
 
 def test_eval_frames_are_paired_frames_of_the_eval_indenters(skins):
@@ -45,3 +45,16 @@ def test_paired_table_keeps_shared_frames_and_few_pairs(skins):
 def test_evenly():
     assert evenly(np.arange(10), 3).tolist() == [1, 5, 8]
     assert evenly(np.arange(2), 5).tolist() == [0, 1]
+
+
+def test_take_rows_reads_rows_in_any_order_from_a_dataset(tmp_path):
+    """take_rows gives arr[rows] for unsorted, repeated rows, from an HDF5 dataset (which
+    accepts only increasing rows) as from an array."""
+    import h5py
+    data = np.arange(40).reshape(10, 4)
+    with h5py.File(tmp_path / "a.h5", "w") as f:
+        f["x"] = data
+    rows = [7, 2, 7, 0, 9]
+    with h5py.File(tmp_path / "a.h5", "r") as f:
+        np.testing.assert_array_equal(take_rows(f["x"], rows), data[rows])
+    np.testing.assert_array_equal(take_rows(data, rows), data[rows])
