@@ -170,21 +170,24 @@ def contact_sizes(translated, target_markers, indenters) -> dict:
 def train_model(params, translated, target_markers, label_sets, train_ind, test_ind) -> None:
     from stages.force.metrics import force_metrics
     from stages.force.model import predict_contacts
-    from stages.force.nodes import _read_runs, _split_config, _test_set, align_models
+    from stages.force.nodes import _split_config, _test_set, _training_images, align_models
     from stages.force.train import fit_two_stage, make_sequences
     fc = params["force"]
     model_cfg, train = _split_config(fc["config"])
     runs = contact_runs(translated, train_ind)
-    images = _read_runs(translated, "images", runs)
+    pairs = int(params["m2m"]["finetune"]["pairs_per_skin"])
+    images, seq_runs, _ = _training_images(translated, runs, target_markers, train_ind, pairs,   # as transfer
+                                           fc["splice"], TOOL)                                 # does
     sets = {"unseen": _test_set(target_markers, test_ind), "seen": _test_set(target_markers, train_ind)}
     for name, comp in zip(("punch", "per indenter"), label_sets):
-        seqs = make_sequences(images, [comp[a:b] for a, b in runs], np.asarray(translated["reference"]), model_cfg)
+        seqs = make_sequences(images, [comp[a:b] for a, b in seq_runs], np.asarray(translated["reference"]),
+                              model_cfg)
         model, _ = fit_two_stage(seqs, model_cfg, steps=int(fc["steps"]), finetune_steps=int(fc["finetune_steps"]),
                                  batch_size=int(fc["batch_size"]), lr=float(fc["lr"]), seed=int(fc["seed"]),
                                  seq_len=int(train["seq_len"]),
                                  finetune_lr_factor=float(train["finetune_lr_factor"]), desc=name)
-        model = align_models({name: model}, translated, target_markers, train_ind,     # as transfer does
-                             int(params["m2m"]["finetune"]["pairs_per_skin"]), fc["align"], name)[0][name]
+        model = align_models({name: model}, translated, target_markers, train_ind, pairs,   # as transfer does
+                             fc["align"], name)[0][name]
         scores = []
         for split, data in sets.items():
             m = force_metrics(predict_contacts(model, data["images"], data["contact_id"], data["reference"]),

@@ -84,6 +84,40 @@ def _read_runs(art, key: str, runs) -> list[np.ndarray]:
     return [np.asarray(art[key][a:b]) for a, b in runs]
 
 
+def splice_paired(images: list[np.ndarray], runs, translated: Mapping, target_markers: Mapping | None,
+                  indenters: Sequence[str] | None, pairs: int, name: str) -> tuple[list[np.ndarray], int]:
+    """The translated contacts' images (`images`, one array per run of `runs`) with the frames
+    that are location-paired with the target's own collection replaced by the target's frames:
+    `pairs` of them (0: all) among the paired frames of `indenters`, the frames M2M's fine-tune
+    and the alignment read (paired_table).  A paired frame shows the target at the same
+    location, depth and phase as the source's frame it replaces, so it keeps that frame's label;
+    the regressor then sees some of the target's own images among the translations, labelled by
+    the source.  Returns (images, frames spliced)."""
+    from stages.m2m.data import indenter_names as indenters_of
+    from stages.m2m.data import paired_table, take_rows
+    if target_markers is None or "images" not in target_markers:
+        raise ValueError(f"{name}: splice needs the target's own frames (target_markers)")
+    if indenters is None:
+        indenters = indenters_of(translated)
+    _, rows = paired_table({"translated": translated, "target": target_markers},
+                           ["translated", "target"], indenters, int(pairs))
+    real = take_rows(target_markers["images"], rows[1])
+    out = [np.array(im) for im in images]
+    starts = np.array([a for a, _ in runs])
+    stops = np.array([b for _, b in runs])
+    done = 0
+    for row, frame in zip(rows[0].tolist(), real):
+        i = int(np.searchsorted(starts, row, side="right")) - 1
+        if i < 0 or row >= stops[i]:
+            continue                     # a paired frame outside the training contacts
+        if out[i][row - starts[i]].shape != frame.shape:
+            raise ValueError(f"{name}: the target's frames are {frame.shape}, the translations "
+                             f"{out[i][row - starts[i]].shape}")
+        out[i][row - starts[i]] = frame
+        done += 1
+    return out, done
+
+
 def _checkpoint(path: str | None):
     """The node's training checkpoint (stages.force.train.Checkpoint) at the engine's path."""
     from stages.force.train import Checkpoint
@@ -138,7 +172,8 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
                  compensation: str = "normal", compensation_depth: str = "shared",
                  target_markers: Mapping | None = None,
                  source_spec: Mapping | None = None, target_spec: Mapping | None = None,
-                 align: str = "none", align_pairs: int = 0, checkpoint: str | None = None) -> dict:
+                 align: str = "none", align_pairs: int = 0, splice: str = "none",
+                 checkpoint: str | None = None) -> dict:
     """Node `transfer[source,target]`: regressors on the source's sequences translated into the
     target's style (images; reference = the target's), trained with the source's labels
     (genforce) and with the labels compensated to the target's material (genforce_comp).
@@ -157,6 +192,10 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     and `target_markers`' collections; no target label is read).  `align` ("none", "encoder",
     "all"): both models' batch norm is then aligned to the target's own frames on
     `align_pairs` location-paired frames of `train_indenters` (align_models; images only).
+    `splice` ("none", "replace", "mix"): those same paired frames of the target replace the
+    translations they are paired with in the training sequences (splice_paired), keeping the
+    source's labels; "mix" trains on each contact as translated and as spliced
+    (_training_images).
     `checkpoint` (the
     engine's): an interrupted node re-runs none of its finished fits and resumes the one it
     was in (stages.force.train.Checkpoint).
@@ -180,8 +219,9 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     k = _depth_ratio(compensation_depth, depth, target_markers, f"fit_transfer[{source}->{target}]")
     identity = src_curves == tgt_curves and k == 1.0
     comp = compensate(force, depth, loading, src_curves, tgt_curves, mode=compensation, depth_ratio=k)
-    seqs = make_sequences(_read_runs(translated, "images", runs), [force[a:b] for a, b in runs],
-                          reference, model_cfg)
+    images, seq_runs, spliced = _training_images(translated, runs, target_markers, train_indenters,
+                                                 align_pairs, splice, name)
+    seqs = make_sequences(images, [force[a:b] for a, b in seq_runs], reference, model_cfg)
     kwargs = dict(steps=int(steps), finetune_steps=int(finetune_steps), batch_size=int(batch_size),
                   lr=float(lr), seed=int(seed), seq_len=int(train["seq_len"]),
                   finetune_lr_factor=float(train["finetune_lr_factor"]))
@@ -192,7 +232,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     histories = {"genforce": hist}
     models = {"genforce": genforce, "genforce_comp": genforce}
     if not identity:
-        comp_seqs = [ContactSequence(s.inputs, comp[a:b]) for s, (a, b) in zip(seqs, runs)]
+        comp_seqs = [ContactSequence(s.inputs, comp[a:b]) for s, (a, b) in zip(seqs, seq_runs)]
         genforce_comp, histories["genforce_comp"] = fit_two_stage(
             comp_seqs, model_cfg, desc=f"{name} genforce_comp", checkpoint=ckpt,
             label="genforce_comp", **kwargs)
@@ -216,6 +256,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
             "attrs": {"config": genforce.config, "train": train, "source": source, "target": target,
                       "compensation_identity": bool(identity), "compensation": compensation,
                       "compensation_depth": compensation_depth, "depth_ratio": k, "align": aligned,
+                      "spliced": spliced,
                       "shear_ratio": shear_ratio(src_curves, tgt_curves, compensation, k),
                       "force_range": {m: {"min": mdl.config["force_min"], "max": mdl.config["force_max"]}
                                       for m, mdl in models.items()},
@@ -229,13 +270,32 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
 
 
 DEPTH_MODES = ("shared", "paired")
+SPLICE_MODES = ("none", "replace", "mix")
+
+
+def _training_images(translated, runs, target_markers, indenters, pairs, splice, name):
+    """(images per training sequence, the run each is of, frames spliced): the translated
+    contacts, with the target's paired frames spliced in (splice_paired) per `splice`: "none",
+    "replace" (every contact as spliced) or "mix" (every contact twice, as translated and as
+    spliced, so that a draw sees either with even odds)."""
+    from stages.common import InputError
+    if splice not in SPLICE_MODES:
+        raise InputError(f"{name}: splice {splice!r} is not one of {SPLICE_MODES}")
+    images = _read_runs(translated, "images", runs)
+    if splice == "none":
+        return images, list(runs), 0
+    spliced, done = splice_paired(images, runs, translated, target_markers, indenters, pairs, name)
+    if splice == "replace":
+        return spliced, list(runs), done
+    return images + spliced, list(runs) * 2, done
 
 
 def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, config: Mapping,
                       steps: int, batch_size: int, lr: float, finetune_steps: int,
                       train_indenters: Sequence[str] | None = None, model_pair=None,
                       source: str = "", target: str = "", target_markers: Mapping | None = None,
-                      align: str = "none", align_pairs: int = 0, checkpoint: str | None = None) -> dict:
+                      align: str = "none", align_pairs: int = 0, splice: str = "none",
+                      checkpoint: str | None = None) -> dict:
     """Nodes `transfer_seed[seed]` and `hetero_seed[source,target,seed]`: `transfer`'s
     genforce_comp model trained again from another seed: the same translated contacts of
     `train_indenters`, the same labels (compensated with the curves, mode and depth ratio
@@ -244,8 +304,8 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
     control study's ensemble; model_pair: transfer's (source, target), which the graph's
     templates read), and their spread is the chance in a study's figure (hetero; source,
     target: the fan-out's values, which transfer's attrs hold too).  Returns genforce_comp
-    weights and attrs {config, source, target, seed, history, align}.  `align`, `align_pairs`,
-    `target_markers` and `checkpoint`: as fit_transfer's."""
+    weights and attrs {config, source, target, seed, history, align, spliced}.  `align`,
+    `align_pairs`, `splice`, `target_markers` and `checkpoint`: as fit_transfer's."""
     from stages.force.compensation import Curves, compensate, loading_mask
     from stages.force.model import to_arrays
     from stages.force.train import fit_two_stage, make_sequences
@@ -264,8 +324,9 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
                            loading_mask(np.asarray(translated["phase"])), curves["source"],
                            curves["target"], mode=info["compensation"],
                            depth_ratio=float(info["depth_ratio"]))
-    seqs = make_sequences(_read_runs(translated, "images", runs), [force[a:b] for a, b in runs],
-                          reference, model_cfg)
+    images, seq_runs, spliced = _training_images(translated, runs, target_markers, train_indenters,
+                                                 align_pairs, splice, name)
+    seqs = make_sequences(images, [force[a:b] for a, b in seq_runs], reference, model_cfg)
     ckpt = _checkpoint(checkpoint)
     model, history = fit_two_stage(seqs, model_cfg, steps=int(steps), finetune_steps=int(finetune_steps),
                                    batch_size=int(batch_size), lr=float(lr), seed=int(seed),
@@ -278,7 +339,8 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
     kept, timing = _split_timing(history, ckpt)
     return {"genforce_comp": to_arrays(models["genforce_comp"]),
             "attrs": {"config": model.config, "train": train, "source": info["source"],
-                      "target": info["target"], "seed": int(seed), "history": kept, "align": aligned},
+                      "target": info["target"], "seed": int(seed), "history": kept, "align": aligned,
+                      "spliced": spliced},
             "timing": timing}
 
 

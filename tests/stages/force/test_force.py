@@ -702,3 +702,65 @@ def test_fit_transfer_aligns_its_models_on_paired_target_frames(nodes_out, skins
         fit_transfer(translated=skins["A"], source_calibration=_calibration_art(1.0),   # before training
                      target_calibration=_calibration_art(2.0), source="B", target="A",
                      finetune_steps=0, target_markers=dim, align="head", checkpoint="/nonexistent/x", **kw)
+
+
+def test_splice_paired_puts_the_targets_own_frames_where_their_locations_are(skins):
+    """splice_paired replaces exactly the chosen location-paired frames of the training contacts
+    with the target's frame of the same `frame` value, wherever the target's artifact holds it,
+    and leaves every other frame as translated."""
+    from stages.force.nodes import _read_runs, splice_paired
+    n = len(skins["A"]["force"])
+    translated = dict(skins["A"], paired=np.arange(n) % 3 == 0)
+    order = np.random.default_rng(0).permutation(n)              # the target's rows in another order
+    target = {k: (v[order] if isinstance(v, np.ndarray) and len(v) == n else v)
+              for k, v in dict(skins["B"], paired=translated["paired"]).items()}
+    train = ["sphere", "prism", "cone"]
+    runs = contact_runs(translated, train)
+    images = _read_runs(translated, "images", runs)
+    out, done = splice_paired(images, runs, translated, target, train, 5, "t")
+    assert done == 5 and len(out) == len(images)
+    changed = [(i, j) for i, (a, b) in enumerate(zip(images, out)) for j in range(len(a))
+               if not np.array_equal(a[j], b[j])]
+    assert len(changed) == 5
+    where = {int(f): r for r, f in enumerate(target["frame"])}
+    for i, j in changed:
+        row = runs[i][0] + j
+        assert translated["paired"][row]
+        np.testing.assert_array_equal(out[i][j], target["images"][where[int(translated["frame"][row])]])
+    assert np.array_equal(images[0], _read_runs(translated, "images", runs)[0])   # input untouched
+    _, every = splice_paired(images, runs, translated, target, train, 0, "t")
+    assert every == int(sum(translated["paired"][a:b].sum() for a, b in runs))
+    with pytest.raises(ValueError, match=r"t: splice needs the target's own frames"):
+        splice_paired(images, runs, translated, None, train, 5, "t")
+
+
+def test_fit_transfer_splices_the_paired_target_frames(skins, tiny_config):
+    """splice "replace": both methods (and the seed models) train on sequences holding the
+    target's own paired frames, which changes the weights; "mix" draws every contact as
+    translated or as spliced (twice the sequences, the same labels); an unknown mode is the
+    user's one-line error before any training."""
+    kw = dict(config={**tiny_config, "seq_len": 10}, steps=4, batch_size=2, lr=0.05, seed=0,
+              train_indenters=["sphere", "prism", "cone"], source_calibration=_calibration_art(1.0),
+              target_calibration=_calibration_art(2.0), source="B", target="A", finetune_steps=0)
+    n = len(skins["A"]["force"])
+    translated = dict(skins["A"], paired=np.arange(n) % 3 == 0)
+    target = dict(translated, images=255 - translated["images"])
+    plain = fit_transfer(translated=translated, target_markers=target, **kw)
+    spliced = fit_transfer(translated=translated, target_markers=target, splice="replace", align_pairs=8, **kw)
+    mixed = fit_transfer(translated=translated, target_markers=target, splice="mix", align_pairs=8, **kw)
+    assert (plain["attrs"]["spliced"], spliced["attrs"]["spliced"], mixed["attrs"]["spliced"]) == (0, 8, 8)
+    contacts = [out["attrs"]["history"]["genforce_comp"]["pretrain"]["contacts"] for out in (plain, spliced, mixed)]
+    assert contacts == [9, 9, 18]
+    for method in ("genforce", "genforce_comp"):
+        for other in (spliced, mixed):
+            assert any(not np.array_equal(v, plain[method][k]) for k, v in other[method].items())
+    transfer = json.loads(json.dumps({"attrs": mixed["attrs"]}))
+    seed = fit_transfer_seed(transfer=transfer, translated=translated, seed=0, target_markers=target,
+                             splice="mix", align_pairs=8,
+                             **{k: kw[k] for k in ("config", "steps", "batch_size", "lr", "finetune_steps",
+                                                   "train_indenters")})
+    assert seed["attrs"]["spliced"] == 8
+    for k, v in mixed["genforce_comp"].items():
+        np.testing.assert_array_equal(seed["genforce_comp"][k], v)
+    with pytest.raises(InputError, match=r"transfer\[B->A\]: splice True is not one of \('none', 'replace', 'mix'\)"):
+        fit_transfer(translated=translated, target_markers=target, splice=True, checkpoint="/nonexistent/x", **kw)
