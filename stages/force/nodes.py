@@ -37,8 +37,8 @@ SEEDS = "genforce_comp_seeds"
 ENSEMBLE = "genforce_comp_ensemble"
 # the transferred models (and source-only) scored on the target's contacts of the seen
 # (training) indenters as well: method <method>_seen.  GenForce never sees the target's labels
-# nor, past M2M's few fine-tuning pairs and as many paired frames for the alignment, its
-# images, so these frames are test data for every method but the oracle, which trained on
+# nor, past the few location-paired frames M2M's fine-tune, the splice and the alignment read,
+# its images, so these frames are test data for every method but the oracle, which trained on
 # them (no oracle_seen).
 SEEN = "_seen"
 SEEN_METHODS = ("source_only", "genforce", "genforce_comp")
