@@ -176,8 +176,8 @@ def train_model(params, translated, target_markers, label_sets, train_ind, test_
     model_cfg, train = _split_config(fc["config"])
     runs = contact_runs(translated, train_ind)
     pairs = int(params["m2m"]["finetune"]["pairs_per_skin"])
-    images, seq_runs, _ = _training_images(translated, runs, target_markers, train_ind, pairs,   # as transfer
-                                           fc["splice"], TOOL)                                 # does
+    images, seq_runs, _ = _training_images(translated, runs, target_markers, train_ind, pairs,
+                                           fc["splice"], TOOL)                 # spliced as transfer's
     sets = {"unseen": _test_set(target_markers, test_ind), "seen": _test_set(target_markers, train_ind)}
     for name, comp in zip(("punch", "per indenter"), label_sets):
         seqs = make_sequences(images, [comp[a:b] for a, b in seq_runs], np.asarray(translated["reference"]),

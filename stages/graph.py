@@ -145,7 +145,8 @@ GRAPH.node("sim_m2m", "stages.m2m.nodes:image_study",
 # -- force: regressors, transfer with material compensation, the studies ----------------------
 _FIT = {"config": "force.config", "steps": "force.steps", "batch_size": "force.batch_size",
         "lr": "force.lr", "seed": "force.seed"}
-# the transferred models' batch norm aligned on as many location-paired target frames as M2M's fine-tune reads
+# the transferred models trained with (splice) and their batch norm aligned on as many location-paired
+# target frames as M2M's fine-tune reads
 _ALIGN = {"align": "force.align", "align_pairs": "m2m.finetune.pairs_per_skin", "splice": "force.splice"}
 GRAPH.node("own", "stages.force.nodes:fit_own",
            inputs={"markers": "markers[skin={skin}]"},
