@@ -93,15 +93,14 @@ def splice_paired(images: list[np.ndarray], runs, translated: Mapping, target_ma
     location, depth and phase as the source's frame it replaces, so it keeps that frame's label;
     the regressor then sees some of the target's own images among the translations, labelled by
     the source.  Returns (images, frames spliced)."""
-    from stages.m2m.data import indenter_names as indenters_of
-    from stages.m2m.data import paired_table, take_rows
+    from stages.m2m.data import take_rows
     if target_markers is None or "images" not in target_markers:
         raise ValueError(f"{name}: splice needs the target's own frames (target_markers)")
-    if indenters is None:
-        indenters = indenters_of(translated)
-    _, rows = paired_table({"translated": translated, "target": target_markers},
-                           ["translated", "target"], indenters, int(pairs))
+    _, rows = _paired_rows(translated, target_markers, indenters, pairs)
     real = take_rows(target_markers["images"], rows[1])
+    if real.shape[1:] != images[0].shape[1:]:
+        raise ValueError(f"{name}: the target's frames are {real.shape[1:]}, the translations "
+                         f"{images[0].shape[1:]}")
     out = [np.array(im) for im in images]
     starts = np.array([a for a, _ in runs])
     stops = np.array([b for _, b in runs])
@@ -110,12 +109,22 @@ def splice_paired(images: list[np.ndarray], runs, translated: Mapping, target_ma
         i = int(np.searchsorted(starts, row, side="right")) - 1
         if i < 0 or row >= stops[i]:
             continue                     # a paired frame outside the training contacts
-        if out[i][row - starts[i]].shape != frame.shape:
-            raise ValueError(f"{name}: the target's frames are {frame.shape}, the translations "
-                             f"{out[i][row - starts[i]].shape}")
         out[i][row - starts[i]] = frame
         done += 1
     return out, done
+
+
+def _paired_rows(translated: Mapping, target_markers: Mapping, indenters: Sequence[str] | None,
+                 pairs: int) -> tuple[np.ndarray, np.ndarray]:
+    """paired_table of the translations and the target's own collection: `pairs` location-paired
+    frames (0: all) of `indenters` (None: every indenter of the translations), as M2M's
+    fine-tune pairs them.  Returns (frames, rows (2,K): translated, target)."""
+    from stages.m2m.data import indenter_names as indenters_of
+    from stages.m2m.data import paired_table
+    if indenters is None:
+        indenters = indenters_of(translated)
+    return paired_table({"translated": translated, "target": target_markers},
+                        ["translated", "target"], indenters, int(pairs))
 
 
 def _checkpoint(path: str | None):
@@ -378,15 +387,11 @@ def align_models(models: Mapping, translated: Mapping, target_markers: Mapping |
     Returns (models, attrs); layers "none" returns them as they are.  One model object under
     two names is aligned once."""
     from stages.force.align import align_batchnorm
-    from stages.m2m.data import indenter_names as indenters_of
-    from stages.m2m.data import paired_table, take_rows
+    from stages.m2m.data import take_rows
     _check_align(layers, target_markers, name)
     if layers == "none":
         return dict(models), {"layers": "none"}
-    if indenters is None:
-        indenters = indenters_of(translated)
-    frames, rows = paired_table({"translated": translated, "target": target_markers},
-                                ["translated", "target"], indenters, int(pairs))
+    frames, rows = _paired_rows(translated, target_markers, indenters, pairs)
     fake = take_rows(translated["images"], rows[0])
     real = take_rows(target_markers["images"], rows[1])
     reference = np.asarray(translated["reference"])    # the target's, which the models keep
