@@ -196,13 +196,15 @@ GRAPH.node("transfer_seed", "stages.force.nodes:fit_transfer_seed",
                "model_pair": "control.model_pair"},
            grid={"seed": "control.ensemble_seeds"},
            description="the control model's genforce_comp trained again from other seeds (its ensemble)")
-GRAPH.node("control", "stages.control.nodes:control_study",
+GRAPH.node("control", "stages.control.nodes:control_node",
            inputs={"model": "transfer[source={model_pair[0]},target={model_pair[1]}]",
-                   "members": "transfer_seed[*]"},
+                   "members": "transfer_seed[*]", "supervised": "own[skin={model_pair[1]}]",
+                   "patterns": "patterns"},
            params={"model_pair": "control.model_pair", "objects": "control.objects",
                    "grasp": "control.grasp", "slip": "control.slip",
-                   # the fingers carry the GelSight gel the model's target skin rides on
-                   "sensor": "sensors.gelsight-r10", "material": "materials.r10", "size": "render.size",
+                   # the fingers carry the model's target skin: its gel, look and segmentation
+                   "skins": "skins", "sensors": "sensors", "materials": "materials",
+                   "segmentation": "segmentation", "backend": "render.backend", "size": "render.size",
                    "duration_s": "control.duration_s", "pull": "control.pull", "seed": "control.seed",
                    "tolerance_N": "control.tolerance_N"},
            description="study control (paper Fig. 7): grasping at a target force, slip avoidance")

@@ -21,14 +21,14 @@ from typing import Callable, Mapping
 import numpy as np
 
 from stages.control.controller import GraspController, SlipAvoider
-from stages.control.gripper import GelTable, GripperTwin
+from stages.control.gripper import GelTable, GripperTwin, SkinCamera
 from stages.control.objects import GraspObject
 from stages.markers.patterns import gelsight_pattern
 
 # Twin and episode settings (params `control.twin` may override any of them).
 DEFAULT_TWIN = {
     "grid": [33, 33],          # solver grid on the sensor's pad (coarse: ~0.8 mm cells)
-    "pattern": "A-II",         # GelSight marker layout on both fingers
+    "pattern": "A-II",         # GelSight marker layout of drawn masks (a skin camera brings its own)
     "finger": "left",          # the finger whose sensor feeds the controllers
     "rate_hz": 20.0,           # sensor frame rate (= the slip check's rate)
     "finger_N_mm": 4.0,        # mount + finger stiffness, each side
@@ -87,19 +87,25 @@ def _reset(predictor, reference) -> None:
 
 
 def make_twin(obj: GraspObject, *, sensor: Mapping, material: Mapping, size, twin: Mapping,
-              load=None, table: GelTable | None = None) -> GripperTwin:
-    pattern = str(twin["pattern"]).removeprefix("gelsight-")
-    return GripperTwin(obj, sensor=sensor, material=material, pattern=gelsight_pattern(pattern),
+              load=None, table: GelTable | None = None, camera: SkinCamera | None = None) -> GripperTwin:
+    """The episode's gripper twin; with a camera (the skin's image chain) its pattern is the
+    camera's, else the GelSight twin named by twin["pattern"] with drawn masks."""
+    if camera is not None:
+        markers = camera.markers
+    else:
+        markers = gelsight_pattern(str(twin["pattern"]).removeprefix("gelsight-"))
+    return GripperTwin(obj, sensor=sensor, material=material, pattern=markers,
                        size=size, grid=twin["grid"], approach_mm=twin["approach_mm"],
                        finger_N_mm=twin["finger_N_mm"], damping_N_s_m=twin["damping_N_s_m"],
-                       load=load, table=table)
+                       load=load, table=table, camera=camera)
 
 
 def run_episode(obj: GraspObject, make_predictor: Callable, *, sensor: Mapping, material: Mapping,
                 size=(128, 128), grasp_s: float = 4.0, pull: Mapping | None = None,
                 twin: Mapping | None = None, controller: Mapping | None = None,
-                table: GelTable | None = None) -> dict:
+                table: GelTable | None = None, camera: SkinCamera | None = None) -> dict:
     """One episode (a slip episode when `pull` is given).  make_predictor(twin) -> predictor.
+    camera: the sensors' image chain (gripper.SkinCamera; None: drawn masks).
 
     Returns per-frame arrays time (s), width_m, force_true / force_pred (N, 3) N (left pad;
     pred after taring), normal_N (the twin's normal force), slip_mm (N, 2), load_N (N, 2),
@@ -122,7 +128,7 @@ def run_episode(obj: GraspObject, make_predictor: Callable, *, sensor: Mapping, 
         load = total_force(weight_force(obj, t_lift, float(tw["lift_s"])),
                            pull_force(pull, marks["pull"]))
     gripper = make_twin(obj, sensor=sensor, material=material, size=size, twin=tw, load=load,
-                        table=table)
+                        table=table, camera=camera)
     predictor = make_predictor(gripper)
     _reset(predictor, gripper.reference)
     grasp = GraspController(obj.target_N, kp=ctl["kp"], rate_hz=ctl["grasp_rate_hz"],

@@ -18,6 +18,7 @@ so a failure is the force model's.
 """
 from __future__ import annotations
 
+import zlib
 from typing import Callable, Mapping
 
 import numpy as np
@@ -26,6 +27,7 @@ from stages.common import attrs_of
 from stages.control.controller import OraclePredictor
 from stages.control.episodes import (DEFAULT_CONTROLLER, DEFAULT_PULL, DEFAULT_TWIN, grasp_metrics,
                                      merged_settings, run_episode, slip_metrics)
+from stages.control.gripper import SkinCamera
 from stages.control.objects import GraspObject, grasp_object
 from stages.figures import contact_sheet, figure_png, png
 
@@ -39,23 +41,99 @@ def oracle_factory(*, finger: str = "left", noise_N: float = 0.0, lag_frames: in
                                         lag_frames=lag_frames, seed=seed)
 
 
+def control_node(*, model, model_pair, skins: Mapping, sensors: Mapping, materials: Mapping,
+                 patterns: Mapping, segmentation: Mapping | None = None, backend: str = "auto",
+                 members: Mapping | None = None, supervised=None, **study) -> dict:
+    """Node `control`: the fingers carry the model's target skin, model_pair[1]: its sensor's
+    gel (sensors.<skin's sensor>, materials.<its material>) and its image chain (SkinCamera:
+    the skin's look rendered and segmented as its training frames were).  supervised: the
+    skin's own-label model (own[skin]), run through the same episodes as the reference a
+    transferred model is measured against.  The rest as control_study."""
+    from stages.common import InputError
+    from stages.markers.render import marker_set
+
+    target = str(model_pair[1])
+    if target not in skins:
+        raise InputError(f"control: model_pair target {target!r} is not a skin ({', '.join(skins)})")
+    spec = skins[target]
+    look = spec.get("look")
+    if spec.get("source", "render") != "render" or look not in ("none", "gelsight"):
+        raise InputError(f"control: the fingers carry skin {target!r} (look {look!r}): the gripper "
+                         "twin has flat camera pads, skins of look gelsight or none")
+    if spec["sensor"] not in sensors:
+        raise InputError(f"control: skin {target!r} rides on sensor {spec['sensor']!r}, not in sensors")
+    sensor = sensors[spec["sensor"]]
+    if float(sensor.get("curvature_radius_mm", 0.0)) > 0:
+        raise InputError(f"control: skin {target!r} rides on {spec['sensor']!r}, a dome: the gripper "
+                         "twin's pads are flat")
+    return control_study(model=model, members=members, supervised=supervised, model_pair=model_pair,
+                         sensor=sensor, material=materials[sensor["material"]], skin=spec,
+                         skin_name=target, markers=marker_set(patterns, spec["pattern"]),
+                         segmentation=segmentation, backend=backend, **study)
+
+
+def skin_camera(*, skin: Mapping, markers, sensor: Mapping, size, twin: Mapping | None = None,
+                segmentation: Mapping | None = None, skin_name: str = "",
+                backend: str = "auto") -> SkinCamera:
+    """The skin's image chain on the twin's solver grid.  The mesh keeps the vertex spacing the
+    skin's frames were rendered with (the sensor's grid, times the skin's `upsample`), and
+    camera noise is seeded as the render node seeds the skin's."""
+    from stages.sim.indenters import grid_coords
+    from stages.sim.sensors import pad_grid
+
+    grid = tuple(int(v) for v in merged_settings(DEFAULT_TWIN, twin, "twin")["grid"])
+    native, spacing = pad_grid(sensor)
+    twin_spacing = spacing * (native[1] - 1) / (grid[1] - 1)
+    gx, gy = grid_coords(grid, twin_spacing)
+    seed = int(skin.get("seed", zlib.crc32(skin_name.encode())))
+    return SkinCamera(gx, gy, markers, spec=skin, size=size, segmentation=segmentation, seed=seed,
+                      upsample=twin_spacing / spacing * float(skin.get("upsample", 1.0)),
+                      backend=backend)
+
+
 def control_study(*, model, objects: Mapping, grasp: list, slip: list, sensor: Mapping,
                   material: Mapping, size, duration_s: float, pull: Mapping, seed: int = 0,
                   twin: Mapping | None = None, controller: Mapping | None = None,
-                  tolerance_N: float = 0.25, model_pair=None, members: Mapping | None = None) -> dict:
-    """Node `control`.  model_pair: the (source, target) skins of `model`, for the record.
+                  tolerance_N: float = 0.25, model_pair=None, members: Mapping | None = None,
+                  supervised=None, skin: Mapping | None = None, markers=None,
+                  segmentation: Mapping | None = None, skin_name: str = "",
+                  backend: str = "auto") -> dict:
+    """The control study.  model_pair: the (source, target) skins of `model`, for the record.
     model: an artifact holding force-model weights (loaded with
     stages.force.model.load_predictor, prefix "genforce_comp"); None runs the oracle (the
     twin's true force), the ceiling any model is measured against.  members: more such
     artifacts (`transfer_seed[*]`: the same model trained from other seeds); the controllers
-    then read the mean of all the models' forces (force.model.MeanPredictor).  seed: the
-    oracle's noise stream (the model's predictions are deterministic).  See run_study."""
+    then read the mean of all the models' forces (force.model.MeanPredictor).  supervised: an
+    own-label artifact (prefix "weights") run through the same episodes; its metrics are
+    control/supervised/....  skin (its params), markers (its pattern), segmentation: the
+    fingers' images come through the skin's image chain (skin_camera); None: drawn masks of
+    twin["pattern"].  seed: the oracle's noise stream (the model's predictions are
+    deterministic).  See run_study."""
     kw = dict(objects=objects, grasp=grasp, slip=slip, sensor=sensor, material=material, size=size,
               duration_s=duration_s, pull=pull, seed=seed, twin=twin, controller=controller,
               tolerance_N=tolerance_N)
+    import contextlib
+    from stages.markers.mitsuba_backend import thread_count
+    # one frame at a time: extra threads only contend (Dr.Jit's here, torch's in _control_runs)
+    with thread_count(1) if skin is not None else contextlib.nullcontext():
+        if skin is not None:
+            if markers is None:
+                raise ValueError("control_study: a skin camera needs the skin's markers")
+            kw["camera"] = skin_camera(skin=skin, markers=markers, sensor=sensor, size=size,
+                                       twin=twin, segmentation=segmentation, skin_name=skin_name,
+                                       backend=backend)
+        out = _control_runs(model, members, supervised, kw)
+    if skin is not None:
+        out["attrs"]["camera"] = {"skin": skin_name, "look": str(skin.get("look", "none"))}
+    else:
+        out["attrs"]["camera"] = {"drawn": str(merged_settings(DEFAULT_TWIN, twin, "twin")["pattern"])}
+    return out
+
+
+def _control_runs(model, members, supervised, kw: dict) -> dict:
     if model is None:
-        finger = merged_settings(DEFAULT_TWIN, twin, "twin")["finger"]
-        out = run_study(oracle_factory(finger=finger, seed=seed), **kw)
+        finger = merged_settings(DEFAULT_TWIN, kw["twin"], "twin")["finger"]
+        out = run_study(oracle_factory(finger=finger, seed=kw["seed"]), **kw)
         out["attrs"]["predictor"] = "oracle"
         return out
     import torch
@@ -66,27 +144,36 @@ def control_study(*, model, objects: Mapping, grasp: list, slip: list, sensor: M
         predictor = MeanPredictor([predictor] + [load_predictor(members[k], prefix="genforce_comp")
                                                  for k in sorted(members)])
     threads = torch.get_num_threads()
-    torch.set_num_threads(1)             # one frame at a time: extra threads only contend
+    torch.set_num_threads(1)
     try:
         out = run_study(lambda gripper: predictor, **kw)
+        if supervised is not None:
+            own = load_predictor(supervised, prefix="weights")
+            ref = run_study(lambda gripper: own, passive=False, prefix="control/supervised", **kw)
+            out["metrics"].update(ref["metrics"])
     finally:
         torch.set_num_threads(threads)
     out["attrs"]["predictor"] = "genforce_comp"
     out["attrs"]["models"] = 1 + len(members)
     out["attrs"]["member_seeds"] = [int(attrs_of(members[k])["seed"]) for k in sorted(members)]
+    out["attrs"]["supervised"] = supervised is not None
     return out
 
 
 def run_study(make_predictor: Callable, *, objects: Mapping, grasp: list, slip: list,
               sensor: Mapping, material: Mapping, size, duration_s: float, pull: Mapping,
               seed: int = 0, twin: Mapping | None = None, controller: Mapping | None = None,
-              tolerance_N: float = 0.25) -> dict:
+              tolerance_N: float = 0.25, camera: SkinCamera | None = None, passive: bool = True,
+              prefix: str = "control") -> dict:
     """All episodes with predictors from make_predictor(gripper twin) -> predictor.
 
     objects: catalogue name -> entry (objects.py); grasp / slip: names to run; sensor /
     material: the sensor twin's catalogue entry and elastomer; size: marker image (H, W);
     duration_s: the grasp phase; pull: slip-phase settings (episodes.DEFAULT_PULL keys);
-    twin / controller: overrides of episodes.DEFAULT_TWIN / DEFAULT_CONTROLLER.
+    twin / controller: overrides of episodes.DEFAULT_TWIN / DEFAULT_CONTROLLER; camera: the
+    fingers' image chain (gripper.SkinCamera; None: drawn masks); passive: also run each slip
+    episode without avoidance (the oracle, which reads no image: drawn masks) for
+    slip_mm_passive; prefix: of the metric names.
     Returns grasp/<object>/... and slip/<object>/... per-frame arrays, figures, metrics, attrs.
     """
     from tqdm import tqdm
@@ -106,9 +193,9 @@ def run_study(make_predictor: Callable, *, objects: Mapping, grasp: list, slip: 
     for kind, name in tqdm(runs, desc="control", unit="episode", disable=None, leave=False):
         obj = grasp_object(name, objects[name])
         ep = run_episode(obj, make_predictor, pull=pl if kind == "slip" else None,
-                         table=tables.get(name), **common)
+                         table=tables.get(name), camera=camera, **common)
         tables[name] = ep["table"]
-        prefix = f"control/{kind}/{name}"
+        key = f"{prefix}/{kind}/{name}"
         if kind == "grasp":
             found = grasp_metrics(ep, tolerance_N)
             figures[f"grasp_{name}"] = _trace_png(ep, f"grasp {name}: target {obj.target_N} N")
@@ -116,18 +203,20 @@ def run_study(make_predictor: Callable, *, objects: Mapping, grasp: list, slip: 
             steady_images += [ep["image"], diff.astype(np.uint8)]
         else:
             found = slip_metrics(ep, float(ctl["window_s"]), tolerance_N)
-            passive = run_episode(obj, oracle_factory(finger=tw["finger"], seed=seed), pull=pl,
-                                  table=tables[name],
-                                  **{**common, "controller": {**ctl, "threshold_N": np.inf}})
-            found["slip_mm_passive"] = slip_metrics(passive, float(ctl["window_s"]))["slip_mm"]
+            free = None
+            if passive:
+                free = run_episode(obj, oracle_factory(finger=tw["finger"], seed=seed), pull=pl,
+                                   table=tables[name],
+                                   **{**common, "controller": {**ctl, "threshold_N": np.inf}})
+                found["slip_mm_passive"] = slip_metrics(free, float(ctl["window_s"]))["slip_mm"]
             figures[f"slip_{name}"] = _trace_png(ep, f"slip {name}: pull {pl['rate_N_s']} N/s "
-                                                     f"to {pl['max_N']} N", passive=passive)
-        metrics.update({f"{prefix}/{k}": float(v) for k, v in found.items()})
+                                                     f"to {pl['max_N']} N", passive=free)
+        metrics.update({f"{key}/{k}": float(v) for k, v in found.items()})
         out[kind][name] = _arrays(ep)
         marks[f"{kind}/{name}"] = {k: float(v) for k, v in ep["marks"].items()}
         if ep.get("onset") is not None:
             marks[f"{kind}/{name}"]["onset"] = float(ep["onset"])
-    metrics.update(_means(metrics, grasp, slip))
+    metrics.update(_means(metrics, grasp, slip, prefix))
     if steady_images:
         # each grasp object's last marker image and its change from the reference (grey 0)
         figures["images"] = png(contact_sheet(steady_images, cols=min(len(steady_images), 6)))
@@ -151,15 +240,15 @@ def _arrays(ep: Mapping) -> dict:
     return arrays
 
 
-def _means(metrics: Mapping, grasp, slip) -> dict:
+def _means(metrics: Mapping, grasp, slip, prefix: str = "control") -> dict:
     out = {}
     for kind, names, keys in (("grasp", grasp, ("force_error_N", "success", "crushed", "pred_error_N")),
                               ("slip", slip, ("detected_s", "slip_mm", "slip_mm_passive", "success"))):
         for key in keys:
-            values = [metrics[f"control/{kind}/{n}/{key}"] for n in names
-                      if f"control/{kind}/{n}/{key}" in metrics]
+            values = [metrics[f"{prefix}/{kind}/{n}/{key}"] for n in names
+                      if f"{prefix}/{kind}/{n}/{key}" in metrics]
             if values:
-                out[f"control/mean/{kind}/{key}"] = float(np.mean(values))
+                out[f"{prefix}/mean/{kind}/{key}"] = float(np.mean(values))
     return out
 
 

@@ -361,3 +361,122 @@ def test_catalogue_entries_are_checked():
         grasp_object("grape", {**DEFAULT_OBJECTS["grape"], "fragility": "glass"})
     targets = {n: grasp_object(n, e).target_N for n, e in DEFAULT_OBJECTS.items()}
     assert targets["grape"] == 0.6 and targets["plum"] == 0.8 and targets["wood_block"] == 1.2
+
+
+# -- the skin camera: the twin's images through the skin's own image chain -----------------------
+
+GELSIGHT_SKIN = {"sensor": "gelsight-r10", "pattern": "gelsight-A-II", "look": "gelsight", "noise": 3.0,
+                 "source": "render", "light": [[0.95, 0.25, 0.2], [0.25, 0.9, 0.3], [0.2, 0.35, 0.95]]}
+SEGMENTATION = {"method": "otsu", "min_area": 3, "box_margin": 3, "gelsight": {"polarity": "dark"}}
+
+
+def _dimple(n, spacing, depth=0.8, sigma=3.0):
+    """A smooth press (h, w, 3) mm: uz a Gaussian dimple, ux/uy pulled towards its centre."""
+    from stages.sim.indenters import grid_coords
+    gx, gy = grid_coords((n, n), spacing)
+    x, y = np.meshgrid(gx, gy)
+    uz = -depth * np.exp(-(x ** 2 + y ** 2) / (2 * sigma ** 2))
+    return gx, gy, np.stack([0.3 * x * uz, 0.3 * y * uz, uz], -1).astype(np.float32)
+
+
+def test_skin_camera_renders_and_segments_as_the_skins_frames_are_made():
+    """On the sensor's own grid the camera's image of shot i is the markers node's image of a
+    render frame i (same Mitsuba render, LEDs, noise seed, segmentation), bit for bit; on the
+    twin's 33x33 grid (mesh upsampled back to the 65x65 vertices) it differs on a few edge
+    pixels only; its reference is the segmented no-contact render."""
+    from stages.control.gripper import SkinCamera
+    from stages.control.nodes import skin_camera
+    from stages.markers.render import Renderer
+    from stages.markers.segment import segment
+    from stages.markers.unify import segmentation_params
+
+    markers = gelsight_pattern("A-II")
+    gx, gy, disp = _dimple(65, 0.390625)
+    flat = np.zeros((65, 65))
+    renderer = Renderer(gx, gy, flat, flat == 0, markers, look="gelsight", size=SIZE,
+                        light=GELSIGHT_SKIN["light"], noise=3.0, seed=11)
+    params = segmentation_params(SEGMENTATION, "gelsight")
+    expected = segment(renderer.render(disp, 5)["raw"], **params)
+    reference = segment(renderer.render(np.zeros_like(disp), -1)["raw"], **params)
+    camera = SkinCamera(gx, gy, markers, spec=GELSIGHT_SKIN, size=SIZE, segmentation=SEGMENTATION,
+                        seed=11)
+    assert np.array_equal(camera(disp, 5), expected) and np.array_equal(camera.reference, reference)
+    assert (expected != reference).sum() > 50                              # the press shows
+    assert not np.array_equal(camera(disp, 6), expected)                   # another shot's noise
+    coarse = skin_camera(skin={**GELSIGHT_SKIN, "seed": 11}, markers=markers, sensor=SENSOR,
+                         size=SIZE, twin=TWIN, segmentation=SEGMENTATION)
+    assert coarse.grid_shape == (33, 33)
+    assert np.array_equal(coarse.renderer.mesh.x, renderer.mesh.x)         # the same vertices
+    agree = np.mean(coarse(disp[::2, ::2], 5) == expected)
+    assert 0.997 < agree < 1.0
+    with pytest.raises(ValueError, match="camera look"):
+        SkinCamera(gx, gy, markers, spec={"look": "taxel"}, size=SIZE)
+
+
+def test_twin_with_a_skin_camera_reads_its_images():
+    from stages.control.nodes import skin_camera
+    camera = skin_camera(skin=GELSIGHT_SKIN, markers=gelsight_pattern("A-II"), sensor=SENSOR,
+                         size=SIZE, twin=TWIN, segmentation=SEGMENTATION, skin_name="gelsight-A-II")
+    plum = obj("plum")
+    kw = dict(sensor=SENSOR, material=MATERIAL, grid=(33, 33), size=SIZE, camera=camera)
+    open_ = GripperTwin(plum, **kw)
+    assert np.array_equal(open_.read_sensors()["left"], camera.reference)
+    assert np.array_equal(open_.reference, camera.reference)
+    pressed = GripperTwin(plum, width_m=(plum.width_mm - 1.5) * 1e-3, **kw)
+    left, right = pressed.read_sensors()["left"], pressed.read_sensors()["right"]
+    assert (left != camera.reference).sum() > 10 and not np.array_equal(left, right)
+    # each finger's shot: its view of the pad's field, its own camera noise (shots 1, 2)
+    from stages.control.gripper import _mirror_x
+    field = pressed._solve_frame()[1]
+    assert np.array_equal(left, camera(field, 1)) and np.array_equal(right, camera(_mirror_x(field), 2))
+    with pytest.raises(ValueError, match=r"camera renders \(96, 96\) images of a \(33, 33\) grid, "
+                                         r"the twin has \(64, 64\)"):
+        GripperTwin(plum, **{**kw, "size": (64, 64)})
+
+
+def test_control_node_puts_the_target_skin_on_the_fingers(monkeypatch):
+    """control_node: the target skin's sensor, gel, pattern and camera reach the study; the
+    supervised model runs the same episodes under control/supervised/... (no passive slip
+    runs); skins the flat twin cannot carry are the user's one-line errors."""
+    pytest.importorskip("torch")
+    import stages.control.nodes as nodes
+    from stages.common import InputError
+    from stages.force.model import MeanPredictor
+    loaded = []
+
+    def load_predictor(artifact, prefix="genforce_comp"):
+        loaded.append((artifact["gain"], prefix))
+        return ContactPredictor(artifact["gain"])
+
+    fake = type(sys)("stages.force.model")
+    fake.load_predictor, fake.MeanPredictor = load_predictor, MeanPredictor
+    monkeypatch.setitem(sys.modules, "stages.force.model", fake)
+    markers = gelsight_pattern("A-II")
+    patterns = {f"markers/gelsight-A-II/{k}": np.asarray(v) for k, v in
+                (("centers", markers.centers), ("axes", markers.axes), ("angles", markers.angles),
+                 ("pad_size_mm", markers.pad_size_mm))}
+    skins = {"gelsight-A-II": GELSIGHT_SKIN,
+             "tactip": {"sensor": "tactip", "pattern": "tactip", "look": "tactip", "source": "render"},
+             "uskin-3axis": {"sensor": "uskin", "pattern": "uskin", "look": "taxel", "source": "taxels"},
+             "dome": {**GELSIGHT_SKIN, "sensor": "dome"}}
+    sensors = {"gelsight-r10": SENSOR, "dome": {**SENSOR, "curvature_radius_mm": 40.0}}
+    kw = dict(objects=DEFAULT_OBJECTS, grasp=["grape"], slip=["glue_stick"], size=SIZE,
+              duration_s=1.5, pull={**PULL, "monitor_s": 1.0}, seed=0, twin=TWIN, skins=skins,
+              sensors=sensors, materials={"r10": MATERIAL}, patterns=patterns,
+              segmentation=SEGMENTATION)
+    out = nodes.control_node(model={"gain": 3.0}, supervised={"gain": 1.0},
+                             model_pair=["gelsight-A-I", "gelsight-A-II"], **kw)
+    assert loaded == [(3.0, "genforce_comp"), (1.0, "weights")]
+    assert out["attrs"]["camera"] == {"skin": "gelsight-A-II", "look": "gelsight"}
+    assert out["attrs"]["supervised"] is True
+    m = out["metrics"]
+    assert "control/slip/glue_stick/slip_mm_passive" in m
+    assert "control/supervised/mean/grasp/success" in m and "control/supervised/grasp/grape/pred_error_N" in m
+    assert not any(k.startswith("control/supervised/") and "passive" in k for k in m)
+    # the model reading a third of the contact grasps otherwise than the one it is measured against
+    assert m["control/supervised/grasp/grape/force_error_N"] != pytest.approx(
+        m["control/grasp/grape/force_error_N"], abs=1e-3)
+    for target, match in (("tactip", "look 'tactip'"), ("uskin-3axis", "look 'taxel'"),
+                          ("dome", "'dome', a dome"), ("unicorn", "'unicorn' is not a skin")):
+        with pytest.raises(InputError, match=match):
+            nodes.control_node(model={"gain": 3.0}, model_pair=["gelsight-A-I", target], **kw)
