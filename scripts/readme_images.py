@@ -28,7 +28,7 @@ FIGURES = {
     "homo-seen.png": ("homo", "force_seen_unseen"),
     "material-trace.png": ("material", "force_trace"),
     "hetero-radar.png": ("hetero", "force_radar"),
-    "control-grasp.png": ("control", "grasp_strawberry"),
+    "control-grasp.png": ("control", "grasp_plum"),
 }
 
 

@@ -1,7 +1,9 @@
 """Grasp and slip episodes of the gripper twin under the paper's controllers, and their metrics.
 
-A grasp episode: the gripper opens at the object's width + approach_mm, the predictor is tared
-for `tare_s` (the paper subtracts a baseline against its model's zero shift), then the
+A grasp episode: the gripper opens at the object's width + approach_mm, the predictor reads
+`warmup_s` of open-gripper frames (a force model's GRU starts from zero state and reads a few
+frames high: A-II's models 0.65 N at the first frame, settled after ~5), is tared for `tare_s`
+(the paper subtracts a baseline against its model's zero shift), then the
 GraspController closes and holds the target force for `grasp_s`.  A slip episode continues
 (paper: grasp, lift, slip check at the top): the object's weight comes on over `lift_s` (+y,
 down in the marker image), the P loop stops after `settle_s` and the SlipAvoider monitors for
@@ -34,6 +36,7 @@ DEFAULT_TWIN = {
     "finger_N_mm": 4.0,        # mount + finger stiffness, each side
     "damping_N_s_m": 30.0,     # viscous friction of the sliding interface
     "approach_mm": 3.0,        # initial opening beyond the object's width
+    "warmup_s": 0.5,           # open-gripper frames read, not tared: a model's GRU settles
     "tare_s": 0.25,            # open-gripper frames averaged into the force baseline
     "lift_s": 0.5,             # the object's weight comes on over this time
     "settle_s": 0.5,           # P control continues this long after the lift
@@ -117,7 +120,8 @@ def run_episode(obj: GraspObject, make_predictor: Callable, *, sensor: Mapping, 
     ctl = merged_settings(DEFAULT_CONTROLLER, controller, "controller")
     pull = None if pull is None else merged_settings(DEFAULT_PULL, pull, "pull")
     dt = 1.0 / float(tw["rate_hz"])
-    t_close = float(tw["tare_s"])
+    t_tare = float(tw["warmup_s"])
+    t_close = t_tare + float(tw["tare_s"])
     t_lift = t_close + float(grasp_s)
     marks = {"close": t_close, "end_grasp": t_lift, "end": t_lift}
     load = None                                # grasp episodes: the object rests on the table
@@ -147,7 +151,8 @@ def run_episode(obj: GraspObject, make_predictor: Callable, *, sensor: Mapping, 
         images = gripper.read_sensors()
         raw = np.asarray(predictor.step(images[finger]), float)
         if t < t_close - 1e-9:
-            tare.append(raw)
+            if t >= t_tare - 1e-9:
+                tare.append(raw)
         elif grasp.phase == "idle":
             baseline = np.mean(tare, axis=0) if tare else np.zeros(3)
             grasp.start(t, gripper)

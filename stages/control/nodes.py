@@ -6,10 +6,16 @@ lift, then an external pull ramps up while the slip avoider watches the estimate
 same slip episode is also run without avoidance (oracle grasp, no detector) to show what the
 pull alone does (`slip_mm_passive`).
 
+The fingers carry the model's target skin: its gel, and its image chain (gripper.SkinCamera:
+the skin's look rendered in Mitsuba and segmented as its training frames were), so the model
+reads the twin's frames as it reads the skin's.  The skin's own-label model runs the same
+episodes: the reference the transferred model is measured against.
+
 Metrics (episodes.py defines them): control/grasp/<object>/{force_error_N, crushed, success,
 pred_error_N}; control/slip/<object>/{detected_s, slip_mm, slip_mm_passive, false_alarms,
 detected, tightenings, force_error_N, crushed, success}; control/mean/{grasp,slip}/<metric>
-over the objects.
+over the objects; the same under control/supervised/ for the own-label model (without
+slip_mm_passive, which does not depend on the model).
 Grasp success needs no crushing and a steady-state error below `tolerance_N`, default 0.25 N:
 a fragile item (0.6 N) is then held below 0.85 N and a robust one (1.2 N) above 0.95 N, so the
 grasp stays in its fragility class's band (the paper's point in choosing the targets), and the

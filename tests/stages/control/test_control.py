@@ -246,7 +246,7 @@ def test_study_outputs_and_metric_names():
               twin=TWIN)
     out = run_study(oracle_factory(), **kw)
     n = out["grasp"]["grape"]["time"].size
-    assert n == int(round((0.25 + 2.0) * 20)) + 1
+    assert n == int(round((0.5 + 0.25 + 2.0) * 20)) + 1              # warm-up, tare, grasp
     assert out["grasp"]["grape"]["force_pred"].shape == (n, 3)
     assert out["grasp"]["grape"]["force_pred"].dtype == np.float32
     assert set(out["slip"]["glue_stick"]["events"]) == {"contact", "detected"}
@@ -480,3 +480,27 @@ def test_control_node_puts_the_target_skin_on_the_fingers(monkeypatch):
                           ("dome", "'dome', a dome"), ("unicorn", "'unicorn' is not a skin")):
         with pytest.raises(InputError, match=match):
             nodes.control_node(model={"gain": 3.0}, model_pair=["gelsight-A-I", target], **kw)
+
+
+class TransientPredictor:
+    """Reads Fz -0.6 N for the first 4 frames after a reset (a GRU from zero state), then -0.1 N."""
+
+    def reset(self, reference=None):
+        self.k = 0
+
+    def step(self, image):
+        self.k += 1
+        return np.array([0.0, 0.0, -0.6 if self.k <= 4 else -0.1], np.float32)
+
+
+@pytest.mark.parametrize("warmup_s, at_close", [(0.5, 0.0), (0.0, 0.4)])
+def test_the_tare_waits_for_the_models_warm_up(warmup_s, at_close):
+    """The baseline averages the tare_s frames after warmup_s: with the default 0.5 s warm-up a
+    settled reading (-0.1 N) is tared to 0; without it the first frames' transient enters the
+    baseline ((4 x -0.6 - 0.1) / 5 = -0.5 N) and a no-contact frame reads +0.4 N."""
+    ep = episode("plum", lambda twin: TransientPredictor(), grasp_s=0.5, twin={"warmup_s": warmup_s})
+    close = int(np.searchsorted(ep["time"], ep["marks"]["close"] - 1e-9))
+    assert ep["marks"]["close"] == pytest.approx(warmup_s + 0.25)
+    assert ep["force_true"][close, 2] == 0.0
+    assert ep["force_pred"][close, 2] == pytest.approx(at_close, abs=1e-6)
+    np.testing.assert_allclose(ep["baseline_N"], [0.0, 0.0, -0.1 if warmup_s else -0.5], atol=1e-6)
