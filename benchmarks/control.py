@@ -7,14 +7,14 @@ One sensor frame of the loop is: twin physics (finger kinematics, series normal 
 5 ms substeps), contact solve (a pressed solve and, with shear, a sheared one, only when the
 contact state changed), marker image rendering (the left finger: drawn masks, or with "skin" the
 skin camera the control node uses, a Mitsuba render of the GelSight look plus its segmentation),
-force prediction, and the two controllers.  Each episode grasps the object at its target force, then its weight comes on and
-a pull ramps up (8 N/s to 1.5 N) while the slip avoider watches: grasp, hold and slip frames
-alike.  The controllers act on the twin's true force, so every episode follows the same
-trajectory whatever the predictor; the predictor still runs on every image and is timed.  The
-predictor is a tiny untrained ForceRegressor (stages.force.model, default config) when that
-module imports, else the oracle.  Columns: mean ms per frame over the frames where the stage
-ran (solve, render: frames whose contact changed), how many frames ran it, and the whole
-frame's mean and 95th percentile against the 50 ms a 20 Hz loop allows.
+force prediction, and the two controllers.  Each episode grasps the object at its target force,
+then its weight comes on and a pull ramps up (8 N/s to 1.5 N) while the slip avoider watches:
+grasp, hold and slip frames alike.  The controllers act on the twin's true force, so every
+episode follows the same trajectory whatever the predictor; the predictor still runs on every
+image and is timed.  The predictor is a tiny untrained ForceRegressor (stages.force.model,
+default config) when that module imports, else the oracle.  Columns: mean ms per frame over
+the frames where the stage ran (solve, render: frames whose contact changed), how many frames
+ran it, and the whole frame's mean and 95th percentile against the 50 ms a 20 Hz loop allows.
 """
 import argparse
 import contextlib
