@@ -71,9 +71,10 @@ def episode(name, grid, size, predictor_cache, camera=None):
     pull = pull_force({"rate_N_s": 8.0, "max_N": 1.5, "direction_deg": 90.0}, t_lift + HOLD_S)
     twin = GripperTwin(obj, sensor=SENSOR, material=MATERIAL, pattern=gelsight_pattern("A-II"),
                        size=size, grid=grid, load=lambda t: weight(t) + pull(t), camera=camera)
-    if size not in predictor_cache:
-        predictor_cache[size] = make_predictor(twin.reference)
-    predictor, label = predictor_cache[size]
+    key = (size, camera is not None)            # the predictor's reference: drawn or shot
+    if key not in predictor_cache:
+        predictor_cache[key] = make_predictor(twin.reference)
+    predictor, label = predictor_cache[key]
     oracle = OraclePredictor(lambda: twin.true_force("left"))
     if predictor is None:
         predictor = oracle

@@ -90,7 +90,8 @@ def _reset(predictor, reference) -> None:
 
 
 def make_twin(obj: GraspObject, *, sensor: Mapping, material: Mapping, size, twin: Mapping,
-              load=None, table: GelTable | None = None, camera: SkinCamera | None = None) -> GripperTwin:
+              load=None, table: GelTable | None = None, camera: SkinCamera | None = None,
+              first_shot: int = 0) -> GripperTwin:
     """The episode's gripper twin; with a camera (the skin's image chain) its pattern is the
     camera's, else the GelSight twin named by twin["pattern"] with drawn masks."""
     if camera is not None:
@@ -100,15 +101,17 @@ def make_twin(obj: GraspObject, *, sensor: Mapping, material: Mapping, size, twi
     return GripperTwin(obj, sensor=sensor, material=material, pattern=markers,
                        size=size, grid=twin["grid"], approach_mm=twin["approach_mm"],
                        finger_N_mm=twin["finger_N_mm"], damping_N_s_m=twin["damping_N_s_m"],
-                       load=load, table=table, camera=camera)
+                       load=load, table=table, camera=camera, first_shot=first_shot)
 
 
 def run_episode(obj: GraspObject, make_predictor: Callable, *, sensor: Mapping, material: Mapping,
                 size=(128, 128), grasp_s: float = 4.0, pull: Mapping | None = None,
                 twin: Mapping | None = None, controller: Mapping | None = None,
-                table: GelTable | None = None, camera: SkinCamera | None = None) -> dict:
+                table: GelTable | None = None, camera: SkinCamera | None = None,
+                first_shot: int = 0) -> dict:
     """One episode (a slip episode when `pull` is given).  make_predictor(twin) -> predictor.
-    camera: the sensors' image chain (gripper.SkinCamera; None: drawn masks).
+    camera: the sensors' image chain (gripper.SkinCamera; None: drawn masks), its shots
+    numbered from first_shot + 1.
 
     Returns per-frame arrays time (s), width_m, force_true / force_pred (N, 3) N (left pad;
     pred after taring), normal_N (the twin's normal force), slip_mm (N, 2), load_N (N, 2),
@@ -132,7 +135,7 @@ def run_episode(obj: GraspObject, make_predictor: Callable, *, sensor: Mapping, 
         load = total_force(weight_force(obj, t_lift, float(tw["lift_s"])),
                            pull_force(pull, marks["pull"]))
     gripper = make_twin(obj, sensor=sensor, material=material, size=size, twin=tw, load=load,
-                        table=table, camera=camera)
+                        table=table, camera=camera, first_shot=first_shot)
     predictor = make_predictor(gripper)
     _reset(predictor, gripper.reference)
     grasp = GraspController(obj.target_N, kp=ctl["kp"], rate_hz=ctl["grasp_rate_hz"],

@@ -55,7 +55,9 @@ displacement field.  Two ways turn the field into the marker image:
   SkinCamera (camera=, what the control node uses): the skin's own image chain, the one its
       training frames came through: the Mitsuba render of the deformed pad with the skin's
       look (LEDs, camera noise; stages.markers.render.Renderer), segmented as the markers node
-      segments it.  A force model then reads the twin's frames as it reads the skin's.
+      segments it.  A force model then reads the twin's frames as it reads the skin's.  A shot
+      is taken per finger when the contact state changes (the open pad's too), so its noise
+      holds while the contact does.
   drawn masks (camera=None): the pattern's marker centres move with the field interpolated at
       them and are seen through the renders' pinhole camera (pressing brings the surface
       closer: markers spread and grow), each ellipse mapped by the local Jacobian, and
@@ -211,12 +213,16 @@ class SkinCamera:
     params (`look`, optional `light`, `noise`); segmentation: the `segmentation` params;
     upsample: mesh vertices per solver cell and axis (2 on a 33x33 grid gives the 65x65
     vertex grid the training frames were rendered on).  Camera noise of shot i is seeded by
-    (seed, i), as the render node seeds frame i.
+    (seed, i), as the render node seeds frame i.  reference_seed: the seed of the no-contact
+    reference shot (default seed).  The render node's seed gives the skin's own reference, the
+    one its models were trained with, as a sensor keeps the reference captured at set-up: a
+    model transferred to the skin reads another noise realisation of it at another gain (A-II,
+    unseen indenters at 0.5-2 N: 1.23 of the true force with its reference, 0.80 with another).
     """
 
     def __init__(self, grid_x, grid_y, markers: MarkerSet, *, spec: Mapping, size=(128, 128),
                  segmentation: Mapping | None = None, seed: int = 0, upsample: float = 1.0,
-                 backend: str = "auto"):
+                 backend: str = "auto", reference_seed: int | None = None):
         from stages.markers.render import Renderer
         from stages.markers.unify import segmentation_params
 
@@ -231,7 +237,9 @@ class SkinCamera:
                                  light=spec.get("light"), noise=float(spec.get("noise", 0.0)),
                                  seed=int(seed), upsample=float(upsample))
         self.segmentation = segmentation_params(segmentation or {}, look) if look != "none" else {}
+        self.renderer.seed = int(seed if reference_seed is None else reference_seed)
         self.reference = self(np.zeros(shape + (3,), np.float32), -1)
+        self.renderer.seed = int(seed)
 
     def __call__(self, displacement: np.ndarray, index: int) -> np.ndarray:
         """(H, W) uint8 0/255 marker image of the pad's displacement (h, w, 3) mm."""
@@ -274,8 +282,10 @@ class GripperTwin:
     pad frame (None: none).  width_m: initial opening (default object width + approach_mm).
     camera_mm: the drawn masks' pinhole camera distance behind the pad ("render": the Mitsuba
     renders' camera for this image size; None: orthographic).  camera: a SkinCamera on this
-    twin's grid (None: drawn masks); it then makes the images and the reference, and its
-    pattern is the one the twin draws with.
+    twin's grid (None: drawn masks); it then makes the images (a shot per finger and changed
+    contact state, the open pad's too) and the reference, and its pattern replaces `pattern`.
+    first_shot: the camera's shots are numbered from first_shot + 1 (their noise streams: give
+    each episode its own).
     """
 
     def __init__(self, obj: GraspObject, *, sensor: Mapping, material: Mapping,
@@ -284,7 +294,7 @@ class GripperTwin:
                  damping_N_s_m: float = 30.0, load: Callable[[float], np.ndarray] | None = None,
                  substep_s: float = 0.005, max_width_m: float = 0.08, drop_mm: float = 8.0,
                  camera_mm: float | str | None = "render", table: GelTable | None = None,
-                 camera: SkinCamera | None = None):
+                 camera: SkinCamera | None = None, first_shot: int = 0):
         shape, spacing = pad_grid(sensor)
         if grid is not None:
             new = tuple(int(v) for v in grid)
@@ -295,9 +305,12 @@ class GripperTwin:
         self.solver = {"spacing": self.spacing, "E": float(material["E"]), "nu": float(material["nu"]),
                        "thickness": float(sensor["thickness_mm"])}
         self.table = table or GelTable(profile_height(obj, shape, self.spacing), self.solver)
-        self.markers = pattern if pattern is not None else gelsight_pattern("A-II")
+        if camera is not None:
+            self.markers = camera.markers
+        else:
+            self.markers = pattern if pattern is not None else gelsight_pattern("A-II")
         self.size = tuple(int(v) for v in size)
-        self.camera, self._shots = camera, 0
+        self.camera, self._shots = camera, int(first_shot)
         if camera is not None:
             if camera.size != self.size or camera.grid_shape != tuple(self.shape):
                 raise ValueError(f"GripperTwin: the camera renders {camera.size} images of a "
@@ -353,13 +366,18 @@ class GripperTwin:
         return self._frame[3]
 
     def render(self, finger: str, displacement: np.ndarray | None) -> np.ndarray:
-        """A finger's marker image for the left pad's displacement field (None: no contact)."""
+        """A finger's marker image for the left pad's displacement field (None: no contact; a
+        camera still takes a shot of the open pad, with its own noise)."""
+        if self.camera is not None:
+            if displacement is None:
+                view = np.zeros(self.shape + (3,), np.float32)
+            else:
+                view = _mirror_x(displacement) if finger == "right" else displacement
+            self._shots += 1                        # each shot its own camera noise
+            return self.camera(view, self._shots)
         if displacement is None:
             return self.reference.copy()
         view = _mirror_x(displacement) if finger == "right" else displacement
-        if self.camera is not None:
-            self._shots += 1                        # each shot its own camera noise
-            return self.camera(view, self._shots)
         markers = deformed_markers(self.markers, view, self.grid_x, self.grid_y, self.camera_mm)
         return rasterize(markers, size=self.size)
 

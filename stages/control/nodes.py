@@ -38,6 +38,7 @@ from stages.control.objects import GraspObject, grasp_object
 from stages.figures import contact_sheet, figure_png, png
 
 _ARRAYS = ("time", "width_m", "force_true", "force_pred", "normal_N", "slip_mm", "load_N")
+SHOTS_PER_EPISODE = 100_000    # episode k's camera shots are k * this + 1, 2, ...: its own noise
 
 
 def oracle_factory(*, finger: str = "left", noise_N: float = 0.0, lag_frames: int = 0,
@@ -72,6 +73,9 @@ def control_node(*, model, model_pair, skins: Mapping, sensors: Mapping, materia
     if float(sensor.get("curvature_radius_mm", 0.0)) > 0:
         raise InputError(f"control: skin {target!r} rides on {spec['sensor']!r}, a dome: the gripper "
                          "twin's pads are flat")
+    if sensor.get("material") not in materials:
+        raise InputError(f"control: sensor {spec['sensor']!r} has material {sensor.get('material')!r}, "
+                         "not in materials")
     return control_study(model=model, members=members, supervised=supervised, model_pair=model_pair,
                          sensor=sensor, material=materials[sensor["material"]], skin=spec,
                          skin_name=target, markers=marker_set(patterns, spec["pattern"]),
@@ -80,10 +84,12 @@ def control_node(*, model, model_pair, skins: Mapping, sensors: Mapping, materia
 
 def skin_camera(*, skin: Mapping, markers, sensor: Mapping, size, twin: Mapping | None = None,
                 segmentation: Mapping | None = None, skin_name: str = "",
-                backend: str = "auto") -> SkinCamera:
+                backend: str = "auto", noise_seed: int = 0) -> SkinCamera:
     """The skin's image chain on the twin's solver grid.  The mesh keeps the vertex spacing the
-    skin's frames were rendered with (the sensor's grid, times the skin's `upsample`), and
-    camera noise is seeded as the render node seeds the skin's."""
+    skin's frames were rendered with (the sensor's grid, times the skin's `upsample`); the
+    reference is the skin's own (the render node's seed: the markers node's reference, bit for
+    bit), and the shots' camera noise has its own seed, derived from it and noise_seed, so no
+    shot repeats a training frame's noise."""
     from stages.sim.indenters import grid_coords
     from stages.sim.sensors import pad_grid
 
@@ -91,8 +97,10 @@ def skin_camera(*, skin: Mapping, markers, sensor: Mapping, size, twin: Mapping 
     native, spacing = pad_grid(sensor)
     twin_spacing = spacing * (native[1] - 1) / (grid[1] - 1)
     gx, gy = grid_coords(grid, twin_spacing)
-    seed = int(skin.get("seed", zlib.crc32(skin_name.encode())))
-    return SkinCamera(gx, gy, markers, spec=skin, size=size, segmentation=segmentation, seed=seed,
+    render_seed = int(skin.get("seed", zlib.crc32(skin_name.encode())))
+    return SkinCamera(gx, gy, markers, spec=skin, size=size, segmentation=segmentation,
+                      seed=zlib.crc32(f"control/{render_seed}/{int(noise_seed)}".encode()),
+                      reference_seed=render_seed,
                       upsample=twin_spacing / spacing * float(skin.get("upsample", 1.0)),
                       backend=backend)
 
@@ -113,8 +121,8 @@ def control_study(*, model, objects: Mapping, grasp: list, slip: list, sensor: M
     own-label artifact (prefix "weights") run through the same episodes; its metrics are
     control/supervised/....  skin (its params), markers (its pattern), segmentation: the
     fingers' images come through the skin's image chain (skin_camera); None: drawn masks of
-    twin["pattern"].  seed: the oracle's noise stream (the model's predictions are
-    deterministic).  See run_study."""
+    twin["pattern"].  seed: the noise streams, the oracle's and the skin camera's (the model's
+    predictions are deterministic).  See run_study."""
     kw = dict(objects=objects, grasp=grasp, slip=slip, sensor=sensor, material=material, size=size,
               duration_s=duration_s, pull=pull, seed=seed, twin=twin, controller=controller,
               tolerance_N=tolerance_N)
@@ -127,7 +135,7 @@ def control_study(*, model, objects: Mapping, grasp: list, slip: list, sensor: M
                 raise ValueError("control_study: a skin camera needs the skin's markers")
             kw["camera"] = skin_camera(skin=skin, markers=markers, sensor=sensor, size=size,
                                        twin=twin, segmentation=segmentation, skin_name=skin_name,
-                                       backend=backend)
+                                       backend=backend, noise_seed=seed)
         out = _control_runs(model, members, supervised, kw)
     if skin is not None:
         out["attrs"]["camera"] = {"skin": skin_name, "look": str(skin.get("look", "none"))}
@@ -137,7 +145,7 @@ def control_study(*, model, objects: Mapping, grasp: list, slip: list, sensor: M
 
 
 def _control_runs(model, members, supervised, kw: dict) -> dict:
-    if model is None:
+    if model is None and supervised is None:
         finger = merged_settings(DEFAULT_TWIN, kw["twin"], "twin")["finger"]
         out = run_study(oracle_factory(finger=finger, seed=kw["seed"]), **kw)
         out["attrs"]["predictor"] = "oracle"
@@ -145,23 +153,28 @@ def _control_runs(model, members, supervised, kw: dict) -> dict:
     import torch
     from stages.force.model import MeanPredictor, load_predictor
     members = dict(members or {})
-    predictor = load_predictor(model, prefix="genforce_comp")
-    if members:
-        predictor = MeanPredictor([predictor] + [load_predictor(members[k], prefix="genforce_comp")
-                                                 for k in sorted(members)])
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        out = run_study(lambda gripper: predictor, **kw)
+        if model is None:
+            finger = merged_settings(DEFAULT_TWIN, kw["twin"], "twin")["finger"]
+            out = run_study(oracle_factory(finger=finger, seed=kw["seed"]), **kw)
+            out["attrs"]["predictor"] = "oracle"
+        else:
+            predictor = load_predictor(model, prefix="genforce_comp")
+            if members:
+                predictor = MeanPredictor([predictor] + [load_predictor(members[k], prefix="genforce_comp")
+                                                         for k in sorted(members)])
+            out = run_study(lambda gripper: predictor, **kw)
+            out["attrs"]["predictor"] = "genforce_comp"
+            out["attrs"]["models"] = 1 + len(members)
+            out["attrs"]["member_seeds"] = [int(attrs_of(members[k])["seed"]) for k in sorted(members)]
         if supervised is not None:
             own = load_predictor(supervised, prefix="weights")
             ref = run_study(lambda gripper: own, passive=False, prefix="control/supervised", **kw)
             out["metrics"].update(ref["metrics"])
     finally:
         torch.set_num_threads(threads)
-    out["attrs"]["predictor"] = "genforce_comp"
-    out["attrs"]["models"] = 1 + len(members)
-    out["attrs"]["member_seeds"] = [int(attrs_of(members[k])["seed"]) for k in sorted(members)]
     out["attrs"]["supervised"] = supervised is not None
     return out
 
@@ -196,10 +209,12 @@ def run_study(make_predictor: Callable, *, objects: Mapping, grasp: list, slip: 
     tables, out, metrics, figures, marks = {}, {"grasp": {}, "slip": {}}, {}, {}, {}
     steady_images = []
     runs = [("grasp", n) for n in grasp] + [("slip", n) for n in slip]
-    for kind, name in tqdm(runs, desc="control", unit="episode", disable=None, leave=False):
+    for k, (kind, name) in enumerate(tqdm(runs, desc="control", unit="episode", disable=None,
+                                          leave=False)):
         obj = grasp_object(name, objects[name])
         ep = run_episode(obj, make_predictor, pull=pl if kind == "slip" else None,
-                         table=tables.get(name), camera=camera, **common)
+                         table=tables.get(name), camera=camera, first_shot=SHOTS_PER_EPISODE * k,
+                         **common)
         tables[name] = ep["table"]
         key = f"{prefix}/{kind}/{name}"
         if kind == "grasp":

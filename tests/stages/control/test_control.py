@@ -1,5 +1,6 @@
 """Gripper twin, grasp controller and slip avoider, with an oracle force predictor."""
 import sys
+import zlib
 
 import numpy as np
 import pytest
@@ -403,10 +404,15 @@ def test_skin_camera_renders_and_segments_as_the_skins_frames_are_made():
     assert np.array_equal(camera(disp, 5), expected) and np.array_equal(camera.reference, reference)
     assert (expected != reference).sum() > 50                              # the press shows
     assert not np.array_equal(camera(disp, 6), expected)                   # another shot's noise
-    coarse = skin_camera(skin={**GELSIGHT_SKIN, "seed": 11}, markers=markers, sensor=SENSOR,
-                         size=SIZE, twin=TWIN, segmentation=SEGMENTATION)
-    assert coarse.grid_shape == (33, 33)
-    assert np.array_equal(coarse.renderer.mesh.x, renderer.mesh.x)         # the same vertices
+    node = skin_camera(skin={**GELSIGHT_SKIN, "seed": 11}, markers=markers, sensor=SENSOR,
+                       size=SIZE, twin=TWIN, segmentation=SEGMENTATION)
+    assert node.grid_shape == (33, 33)
+    assert np.array_equal(node.renderer.mesh.x, renderer.mesh.x)           # the same vertices
+    assert node.renderer.seed == zlib.crc32(b"control/11/0")               # not a training frame's noise
+    assert np.array_equal(node.reference, reference)                       # but the skin's reference
+    coarse = SkinCamera(node.renderer.mesh.x[1:-1][::2], node.renderer.mesh.y[1:-1][::2], markers,
+                        spec=GELSIGHT_SKIN, size=SIZE, segmentation=SEGMENTATION, seed=11, upsample=2)
+    assert np.array_equal(coarse.renderer.mesh.x, renderer.mesh.x)
     agree = np.mean(coarse(disp[::2, ::2], 5) == expected)
     assert 0.997 < agree < 1.0
     with pytest.raises(ValueError, match="camera look"):
@@ -419,9 +425,13 @@ def test_twin_with_a_skin_camera_reads_its_images():
                          size=SIZE, twin=TWIN, segmentation=SEGMENTATION, skin_name="gelsight-A-II")
     plum = obj("plum")
     kw = dict(sensor=SENSOR, material=MATERIAL, grid=(33, 33), size=SIZE, camera=camera)
-    open_ = GripperTwin(plum, **kw)
-    assert np.array_equal(open_.read_sensors()["left"], camera.reference)
+    # the open pad is a shot too: the reference up to camera noise on a few edge pixels
+    open_ = GripperTwin(plum, first_shot=40, **kw)
+    shot = open_.read_sensors()["left"]
     assert np.array_equal(open_.reference, camera.reference)
+    assert np.array_equal(shot, camera(np.zeros((33, 33, 3), np.float32), 41))
+    assert 0 < (shot != camera.reference).sum() < 60
+    assert open_.markers is camera.markers
     pressed = GripperTwin(plum, width_m=(plum.width_mm - 1.5) * 1e-3, **kw)
     left, right = pressed.read_sensors()["left"], pressed.read_sensors()["right"]
     assert (left != camera.reference).sum() > 10 and not np.array_equal(left, right)
@@ -480,6 +490,17 @@ def test_control_node_puts_the_target_skin_on_the_fingers(monkeypatch):
                           ("dome", "'dome', a dome"), ("unicorn", "'unicorn' is not a skin")):
         with pytest.raises(InputError, match=match):
             nodes.control_node(model={"gain": 3.0}, model_pair=["gelsight-A-I", target], **kw)
+    with pytest.raises(InputError, match="sensor 'gelsight-r10' has material 'r10', not in materials"):
+        nodes.control_node(model={"gain": 3.0}, model_pair=["gelsight-A-I", "gelsight-A-II"],
+                           **{**kw, "materials": {}})
+    # the oracle with a supervised model: both run, the oracle's metrics unprefixed
+    loaded.clear()
+    both = nodes.control_node(model=None, supervised={"gain": 1.0}, model_pair=["gelsight-A-I", "gelsight-A-II"],
+                              **{**kw, "slip": []})
+    assert loaded == [(1.0, "weights")] and both["attrs"]["predictor"] == "oracle"
+    assert both["metrics"]["control/grasp/grape/pred_error_N"] < 1e-6     # the twin's own force
+    assert both["metrics"]["control/supervised/grasp/grape/force_error_N"] == pytest.approx(
+        m["control/supervised/grasp/grape/force_error_N"])
 
 
 class TransientPredictor:
