@@ -94,10 +94,8 @@ def make_twin(obj: GraspObject, *, sensor: Mapping, material: Mapping, size, twi
               first_shot: int = 0) -> GripperTwin:
     """The episode's gripper twin; with a camera (the skin's image chain) its pattern is the
     camera's, else the GelSight twin named by twin["pattern"] with drawn masks."""
-    if camera is not None:
-        markers = camera.markers
-    else:
-        markers = gelsight_pattern(str(twin["pattern"]).removeprefix("gelsight-"))
+    markers = None if camera is not None else \
+        gelsight_pattern(str(twin["pattern"]).removeprefix("gelsight-"))
     return GripperTwin(obj, sensor=sensor, material=material, pattern=markers,
                        size=size, grid=twin["grid"], approach_mm=twin["approach_mm"],
                        finger_N_mm=twin["finger_N_mm"], damping_N_s_m=twin["damping_N_s_m"],

@@ -145,22 +145,22 @@ def control_study(*, model, objects: Mapping, grasp: list, slip: list, sensor: M
 
 
 def _control_runs(model, members, supervised, kw: dict) -> dict:
-    if model is None and supervised is None:
-        finger = merged_settings(DEFAULT_TWIN, kw["twin"], "twin")["finger"]
-        out = run_study(oracle_factory(finger=finger, seed=kw["seed"]), **kw)
-        out["attrs"]["predictor"] = "oracle"
-        return out
-    import torch
-    from stages.force.model import MeanPredictor, load_predictor
-    members = dict(members or {})
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
+    """The study's runs: the model's (the oracle's when None), then the supervised model's on
+    the same episodes (the gel tables reused, no figures, no passive slip runs)."""
+    kw = {**kw, "tables": {}}
+    threads = None
+    if model is not None or supervised is not None:
+        import torch
+        from stages.force.model import MeanPredictor, load_predictor
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
     try:
         if model is None:
             finger = merged_settings(DEFAULT_TWIN, kw["twin"], "twin")["finger"]
             out = run_study(oracle_factory(finger=finger, seed=kw["seed"]), **kw)
             out["attrs"]["predictor"] = "oracle"
         else:
+            members = dict(members or {})
             predictor = load_predictor(model, prefix="genforce_comp")
             if members:
                 predictor = MeanPredictor([predictor] + [load_predictor(members[k], prefix="genforce_comp")
@@ -171,10 +171,12 @@ def _control_runs(model, members, supervised, kw: dict) -> dict:
             out["attrs"]["member_seeds"] = [int(attrs_of(members[k])["seed"]) for k in sorted(members)]
         if supervised is not None:
             own = load_predictor(supervised, prefix="weights")
-            ref = run_study(lambda gripper: own, passive=False, prefix="control/supervised", **kw)
+            ref = run_study(lambda gripper: own, passive=False, plots=False,
+                            prefix="control/supervised", **kw)
             out["metrics"].update(ref["metrics"])
     finally:
-        torch.set_num_threads(threads)
+        if threads is not None:
+            torch.set_num_threads(threads)
     out["attrs"]["supervised"] = supervised is not None
     return out
 
@@ -183,7 +185,7 @@ def run_study(make_predictor: Callable, *, objects: Mapping, grasp: list, slip: 
               sensor: Mapping, material: Mapping, size, duration_s: float, pull: Mapping,
               seed: int = 0, twin: Mapping | None = None, controller: Mapping | None = None,
               tolerance_N: float = 0.25, camera: SkinCamera | None = None, passive: bool = True,
-              prefix: str = "control") -> dict:
+              prefix: str = "control", plots: bool = True, tables: dict | None = None) -> dict:
     """All episodes with predictors from make_predictor(gripper twin) -> predictor.
 
     objects: catalogue name -> entry (objects.py); grasp / slip: names to run; sensor /
@@ -192,7 +194,8 @@ def run_study(make_predictor: Callable, *, objects: Mapping, grasp: list, slip: 
     twin / controller: overrides of episodes.DEFAULT_TWIN / DEFAULT_CONTROLLER; camera: the
     fingers' image chain (gripper.SkinCamera; None: drawn masks); passive: also run each slip
     episode without avoidance (the oracle, which reads no image: drawn masks) for
-    slip_mm_passive; prefix: of the metric names.
+    slip_mm_passive; prefix: of the metric names; plots: draw the figures; tables: object name
+    -> gel table, filled and reused (one dict shared by studies of the same twin).
     Returns grasp/<object>/... and slip/<object>/... per-frame arrays, figures, metrics, attrs.
     """
     from tqdm import tqdm
@@ -206,7 +209,8 @@ def run_study(make_predictor: Callable, *, objects: Mapping, grasp: list, slip: 
     size = tuple(int(v) for v in size)
     common = {"sensor": sensor, "material": material, "size": size, "grasp_s": float(duration_s),
               "twin": tw, "controller": ctl}
-    tables, out, metrics, figures, marks = {}, {"grasp": {}, "slip": {}}, {}, {}, {}
+    tables = {} if tables is None else tables
+    out, metrics, figures, marks = {"grasp": {}, "slip": {}}, {}, {}, {}
     steady_images = []
     runs = [("grasp", n) for n in grasp] + [("slip", n) for n in slip]
     for k, (kind, name) in enumerate(tqdm(runs, desc="control", unit="episode", disable=None,
@@ -219,9 +223,10 @@ def run_study(make_predictor: Callable, *, objects: Mapping, grasp: list, slip: 
         key = f"{prefix}/{kind}/{name}"
         if kind == "grasp":
             found = grasp_metrics(ep, tolerance_N)
-            figures[f"grasp_{name}"] = _trace_png(ep, f"grasp {name}: target {obj.target_N} N")
-            diff = 128 + (ep["image"].astype(np.int16) - ep["reference"]) // 2
-            steady_images += [ep["image"], diff.astype(np.uint8)]
+            if plots:
+                figures[f"grasp_{name}"] = _trace_png(ep, f"grasp {name}: target {obj.target_N} N")
+                diff = 128 + (ep["image"].astype(np.int16) - ep["reference"]) // 2
+                steady_images += [ep["image"], diff.astype(np.uint8)]
         else:
             found = slip_metrics(ep, float(ctl["window_s"]), tolerance_N)
             free = None
@@ -230,8 +235,9 @@ def run_study(make_predictor: Callable, *, objects: Mapping, grasp: list, slip: 
                                    table=tables[name],
                                    **{**common, "controller": {**ctl, "threshold_N": np.inf}})
                 found["slip_mm_passive"] = slip_metrics(free, float(ctl["window_s"]))["slip_mm"]
-            figures[f"slip_{name}"] = _trace_png(ep, f"slip {name}: pull {pl['rate_N_s']} N/s "
-                                                     f"to {pl['max_N']} N", passive=free)
+            if plots:
+                figures[f"slip_{name}"] = _trace_png(ep, f"slip {name}: pull {pl['rate_N_s']} N/s "
+                                                         f"to {pl['max_N']} N", passive=free)
         metrics.update({f"{key}/{k}": float(v) for k, v in found.items()})
         out[kind][name] = _arrays(ep)
         marks[f"{kind}/{name}"] = {k: float(v) for k, v in ep["marks"].items()}
