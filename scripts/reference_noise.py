@@ -28,11 +28,12 @@ sys.path.insert(0, str(REPO / "scripts"))
 from store_lookup import artifact_path  # noqa: E402
 
 
-def fresh_references(deform, patterns, spec: dict, segmentation: dict, seeds) -> list[np.ndarray]:
-    """The skin's no-contact marker image under each camera-noise seed: rendered as the render
-    node renders (its Renderer on the deform artifact's pad, the skin's look, light, noise and
-    upsample) and segmented as the markers node segments (the render seed gives the markers
-    node's reference)."""
+def fresh_references(deform, patterns, spec: dict, segmentation: dict, seeds,
+                     size=(128, 128)) -> list[np.ndarray]:
+    """The skin's no-contact marker image (H,W = size) under each camera-noise seed: rendered as
+    the render node renders (its Renderer on the deform artifact's pad, the skin's look, light,
+    noise and upsample; one scene, the seed changed between shots) and segmented as the markers
+    node segments (the render seed gives the markers node's reference)."""
     from stages.markers.render import Renderer, marker_set
     from stages.markers.segment import segment
     from stages.markers.unify import segmentation_params
@@ -42,12 +43,13 @@ def fresh_references(deform, patterns, spec: dict, segmentation: dict, seeds) ->
         raise ValueError(f"reference_noise: look {look!r} has no camera noise (gelsight, tactip)")
     params = segmentation_params(segmentation, look)
     still = np.zeros(np.shape(deform["surface_z"]) + (3,), np.float32)
+    r = Renderer(deform["grid_x"], deform["grid_y"], deform["surface_z"], deform["on_pad"],
+                 marker_set(patterns, spec["pattern"]), look=look, size=size,
+                 light=spec.get("light"), noise=float(spec.get("noise", 0.0)),
+                 upsample=float(spec.get("upsample", 1.0)))
     out = []
     for seed in seeds:
-        r = Renderer(deform["grid_x"], deform["grid_y"], deform["surface_z"], deform["on_pad"],
-                     marker_set(patterns, spec["pattern"]), look=look, size=(128, 128),
-                     light=spec.get("light"), noise=float(spec.get("noise", 0.0)), seed=int(seed),
-                     upsample=float(spec.get("upsample", 1.0)))
+        r.seed = int(seed)                  # the noise of the shot: rng (seed, index + 1)
         out.append(segment(r.render(still, -1)["raw"], **params))
     return out
 
@@ -97,7 +99,8 @@ def main(argv=None):
     markers = get(f"markers[skin={args.skin}]")
     test = _test_set(markers, params["splits"]["test_indenters"])
     fresh = fresh_references(get(f"deform[sensor={spec['sensor']}]"), get("patterns"), spec,
-                             params.get("segmentation") or {}, args.seeds)
+                             params.get("segmentation") or {}, args.seeds,
+                             size=np.shape(test["reference"]))
     render_seed = int(spec.get("seed", zlib.crc32(args.skin.encode())))
     refs = [test["reference"]] + fresh
     names = [f"own reference (seed {render_seed})"] + [f"seed {s}" for s in args.seeds]
