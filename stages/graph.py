@@ -68,6 +68,13 @@ GRAPH.node("markers", "stages.markers.unify:marker_sequence",
            grid={"skin": "render.skins + taxels.skins"},
            description="binary marker images: segmentation of camera looks, signal-to-marker of taxels")
 
+GRAPH.node("references", "stages.markers.unify:reference_takes",
+           inputs={"markers": "markers[skin={skin}]", "source": "{spec[source]}[skin={skin}]",
+                   "deform": "deform[sensor={spec[sensor]}]", "patterns": "patterns"},
+           params={"spec": "skins.{skin}", "segmentation": "segmentation", "takes": "force.reference_takes"},
+           grid={"skin": "force.skins"},
+           description="more takes of a camera skin's no-contact reference under fresh camera noise")
+
 # -- hardware: capture and ingest (source nodes: run only when named) ----------------------
 GRAPH.node("capture", "stages.capture.session:capture",
            inputs={"trajectory": "collection_trajectory", "indenters": "indenters"},
@@ -149,7 +156,7 @@ _FIT = {"config": "force.config", "steps": "force.steps", "batch_size": "force.b
 # target frames as M2M's fine-tune reads
 _ALIGN = {"align": "force.align", "align_pairs": "m2m.finetune.pairs_per_skin", "splice": "force.splice"}
 GRAPH.node("own", "stages.force.nodes:fit_own",
-           inputs={"markers": "markers[skin={skin}]"},
+           inputs={"markers": "markers[skin={skin}]", "references": "references[skin={skin}]"},
            params={**_FIT, "train_indenters": "splits.train_indenters"},
            grid={"skin": "force.skins"},
            description="force regressor on a skin's own labels: source-only model and oracle")

@@ -138,3 +138,83 @@ def marker_sequence(*, source: Mapping, skin: str, spec: Mapping, segmentation: 
         out["metrics"] = {f"segment/{skin}/iou": float(s[:, 0].mean()),
                           f"segment/{skin}/centroid_px": float(s[:, 1].mean())}
     return out
+
+
+def no_contact_shots(deform: Mapping, patterns: Mapping, spec: Mapping, segmentation: Mapping,
+                     shots, *, size=(128, 128), spp: int = 1, backend: str = "auto") -> list[np.ndarray]:
+    """A camera skin's no-contact pad as marker images, one per shot (seed, frame index): the
+    render node's Renderer on the deform artifact's pad (the skin's look, light, noise and
+    upsample; one scene, the camera noise of a shot drawn from rng (seed, index + 1)),
+    segmented as the markers node segments.  The shot (the skin's render seed, -1) is the
+    markers node's reference; any other shot is another take of it under fresh camera noise."""
+    from stages.markers.render import Renderer, marker_set
+    from stages.markers.segment import segment
+
+    look = spec.get("look", "none")
+    if look not in POLARITY:
+        raise ValueError(f"look {look!r} has no camera noise (gelsight, tactip)")
+    params = segmentation_params(segmentation or {}, look)
+    still = np.zeros(np.shape(deform["surface_z"]) + (3,), np.float32)
+    r = Renderer(deform["grid_x"], deform["grid_y"], deform["surface_z"], deform["on_pad"],
+                 marker_set(patterns, spec["pattern"]), look=look, size=size, spp=spp, backend=backend,
+                 light=spec.get("light"), noise=float(spec.get("noise", 0.0)),
+                 upsample=float(spec.get("upsample", 1.0)))
+    out = []
+    for seed, index in shots:
+        r.seed = int(seed)
+        out.append(segment(r.render(still, int(index))["raw"], **params))
+    return out
+
+
+def reference_takes(*, markers: Mapping, source: Mapping, deform: Mapping, patterns: Mapping, skin: str,
+                    spec: Mapping, segmentation: Mapping, takes: int) -> dict:
+    """Node `references[skin]`: `takes` more no-contact marker images of the skin, as its camera
+    would give them on other days: the markers node's reference is one shot of a noisy camera,
+    and every re-mount of a real sensor takes another, differing at a few marker-edge pixels.
+    A force model trained against the one reference reads those pixels as force (GelSight's
+    supervised model: 1.00-2.03x at 0.5-2 N over nine realisations, scripts/reference_noise.py);
+    drawn per training contact from these takes, it learns to ignore them.
+
+    source: the markers node's source (render[skin] for camera looks), whose attrs give the
+    scene (size, spp, backend, noise seed).  Take k is that scene shot after the sequence:
+    camera noise (seed, frames + k + 1), which no frame or reference uses.  Looks without
+    camera noise (none, taxel) give no takes.  Returns `takes` (K,H,W) uint8 0/255,
+    figures/takes (the reference and the first takes above the pixels where each differs
+    from it, in red) and attrs (seed, pixels each take differs by, and how many pixels the
+    reference shot renders differently from the markers node's reference: none when this
+    backend made the store's renders)."""
+    from stages.figures import contact_sheet, png
+
+    reference = np.asarray(markers["reference"])
+    look = spec.get("look", "none")
+    if int(takes) < 0:
+        raise ValueError(f"references[{skin}]: takes must be >= 0, got {takes}")
+    attrs = {"skin": skin, "look": look, "takes": int(takes)}
+    if look not in POLARITY or int(takes) == 0:
+        attrs["why_none"] = ("no takes asked" if look in POLARITY else
+                             f"look {look!r} has no camera noise: its reference is exact")
+        return {"takes": np.zeros((0,) + reference.shape, np.uint8), "attrs": attrs}
+    scene = dict(getattr(source, "attrs", {}) or {})
+    missing = [k for k in ("seed", "spp", "backend", "size") if k not in scene]
+    if missing:
+        raise KeyError(f"references[{skin}]: the render's attrs lack {', '.join(missing)}")
+    if list(scene["size"]) != list(reference.shape):
+        raise ValueError(f"references[{skin}]: render size {list(scene['size'])} is not the "
+                         f"reference's {list(reference.shape)}")
+    seed, n = int(scene["seed"]), len(deform["displacement"])
+    shots = [(seed, -1)] + [(seed, n + k) for k in range(int(takes))]
+    again, *out = no_contact_shots(deform, patterns, spec, segmentation, shots, size=reference.shape,
+                                   spp=int(scene["spp"]), backend=str(scene["backend"]))
+    out = np.stack(out).astype(np.uint8)
+    attrs.update(seed=seed, frame_indices=[n + k for k in range(int(takes))],
+                 pixels_differ=[int(v) for v in (out != reference[None]).sum(axis=(1, 2))],
+                 reference_rendered_again_px=int((again != reference).sum()))
+    shown = out[:4]
+    top = [np.repeat(img[..., None], 3, 2) for img in [reference, *shown]]
+    bottom = [np.full_like(top[0], 90)]
+    for img in shown:
+        d = np.repeat((reference // 3)[..., None], 3, 2)
+        d[img != reference] = (255, 0, 0)
+        bottom.append(d)
+    return {"takes": out, "attrs": attrs,
+            "figures": {"takes": png(contact_sheet(top + bottom, cols=len(top)))}}

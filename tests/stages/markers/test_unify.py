@@ -132,3 +132,57 @@ def test_errors_name_the_culprit():
     taxels = Art({"signals": np.zeros((1, 16, 3), np.int32), "baseline": np.zeros((16, 3), np.int32)})
     with pytest.raises(KeyError, match=r"markers\[u\]: the taxel look needs `size`"):
         run(marker_sequence(source=taxels, skin="u", spec={"look": "taxel"}, segmentation={}))
+
+
+# ---------------------------------------------------------------------------- references[skin]
+
+TAKES_SPEC = {"pattern": "gelsight-A-II", "look": "gelsight", "noise": 3.0}
+
+
+def _reference_shot(deform, seed, index):
+    from stages.markers.patterns import gelsight_pattern
+    from stages.markers.render import Renderer
+    r = Renderer(deform["grid_x"], deform["grid_y"], deform["surface_z"], deform["on_pad"],
+                 gelsight_pattern("A-II"), look="gelsight", size=(64, 64), noise=3.0, seed=seed)
+    return segment(r.render(np.zeros((17, 17, 3), np.float32), index)["raw"],
+                   **segmentation_params({}, "gelsight"))
+
+
+def test_reference_takes_are_the_render_scene_shot_after_the_sequence():
+    from tests.helpers import flat_pad, gelsight_patterns
+    deform = {**flat_pad(), "displacement": np.zeros((5, 17, 17, 3), np.float32)}
+    reference = _reference_shot(deform, 7, -1)                # the markers node's reference
+    source = Art({}, {"seed": 7, "spp": 1, "backend": "auto", "size": [64, 64]})
+    out = unify.reference_takes(markers={"reference": reference}, source=source, deform=deform,
+                                patterns=gelsight_patterns(), skin="g", spec=TAKES_SPEC,
+                                segmentation={}, takes=3)
+    takes = out["takes"]
+    assert takes.shape == (3, 64, 64) and takes.dtype == np.uint8
+    for k in range(3):                                         # frames 0..4 use indices 0..4
+        assert np.array_equal(takes[k], _reference_shot(deform, 7, 5 + k))
+    a = out["attrs"]
+    assert a["frame_indices"] == [5, 6, 7] and a["reference_rendered_again_px"] == 0
+    assert a["pixels_differ"] == [int((t != reference).sum()) for t in takes]
+    assert all(0 < d < 100 for d in a["pixels_differ"])       # a few marker-edge pixels each
+    assert not np.array_equal(takes[0], takes[1])
+    assert bytes(out["figures"]["takes"][:8]) == b"\x89PNG\r\n\x1a\n"
+
+
+def test_reference_takes_none_for_exact_references_and_errors_name_the_skin():
+    from tests.helpers import flat_pad, gelsight_patterns
+    deform = {**flat_pad(), "displacement": np.zeros((2, 17, 17, 3), np.float32)}
+    ref = np.zeros((32, 32), np.uint8)
+    kw = dict(markers={"reference": ref}, deform=deform, patterns=gelsight_patterns(),
+              segmentation={})
+    out = unify.reference_takes(source=Art({}), skin="uskin-z", spec={"look": "taxel"}, takes=8, **kw)
+    assert out["takes"].shape == (0, 32, 32)
+    assert out["attrs"]["why_none"] == "look 'taxel' has no camera noise: its reference is exact"
+    with pytest.raises(ValueError, match=r"references\[g\]: render size \[64, 64\] is not the "
+                                         r"reference's \[32, 32\]"):
+        unify.reference_takes(source=Art({}, {"seed": 1, "spp": 1, "backend": "auto", "size": [64, 64]}),
+                              skin="g", spec=TAKES_SPEC, takes=2, **kw)
+    with pytest.raises(KeyError, match=r"references\[g\]: the render's attrs lack seed, spp"):
+        unify.reference_takes(source=Art({}, {"backend": "auto", "size": [32, 32]}), skin="g",
+                              spec=TAKES_SPEC, takes=2, **kw)
+    with pytest.raises(ValueError, match=r"references\[g\]: takes must be >= 0, got -1"):
+        unify.reference_takes(source=Art({}), skin="g", spec=TAKES_SPEC, takes=-1, **kw)
