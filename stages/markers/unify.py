@@ -173,10 +173,12 @@ def reference_takes(*, markers: Mapping, source: Mapping, deform: Mapping, patte
     and every re-mount of a real sensor takes another, differing at a few marker-edge pixels.
     A force model trained against the one reference reads those pixels as force (GelSight's
     supervised model: 1.00-2.03x at 0.5-2 N over nine realisations, scripts/reference_noise.py);
-    drawn per training contact from these takes, it learns to ignore them.
+    reading every training contact against each of these takes too, it learns to ignore them.
 
     source: the markers node's source (render[skin] for camera looks), whose attrs give the
-    scene (size, spp, backend, noise seed).  Take k is that scene shot after the sequence:
+    scene (size, spp, backend, noise seed; a store rendered with Dr.Jit's LLVM backend is shot
+    with the scalar one where LLVM is missing, and reference_rendered_again_px then counts the
+    pixels that changes).  Take k is that scene shot after the sequence:
     camera noise (seed, frames + k + 1), which no frame or reference uses.  Looks without
     camera noise (none, taxel) give no takes.  Returns `takes` (K,H,W) uint8 0/255,
     figures/takes (the reference and the first takes above the pixels where each differs
@@ -184,6 +186,7 @@ def reference_takes(*, markers: Mapping, source: Mapping, deform: Mapping, patte
     reference shot renders differently from the markers node's reference: none when this
     backend made the store's renders)."""
     from stages.figures import contact_sheet, png
+    from stages.markers.mitsuba_backend import resolve_backend
 
     reference = np.asarray(markers["reference"])
     look = spec.get("look", "none")
@@ -202,11 +205,12 @@ def reference_takes(*, markers: Mapping, source: Mapping, deform: Mapping, patte
         raise ValueError(f"references[{skin}]: render size {list(scene['size'])} is not the "
                          f"reference's {list(reference.shape)}")
     seed, n = int(scene["seed"]), len(deform["displacement"])
+    backend = resolve_backend("auto" if scene["backend"] == "llvm" else str(scene["backend"]))
     shots = [(seed, -1)] + [(seed, n + k) for k in range(int(takes))]
     again, *out = no_contact_shots(deform, patterns, spec, segmentation, shots, size=reference.shape,
-                                   spp=int(scene["spp"]), backend=str(scene["backend"]))
+                                   spp=int(scene["spp"]), backend=backend)
     out = np.stack(out).astype(np.uint8)
-    attrs.update(seed=seed, frame_indices=[n + k for k in range(int(takes))],
+    attrs.update(seed=seed, backend=backend, frame_indices=[n + k for k in range(int(takes))],
                  pixels_differ=[int(v) for v in (out != reference[None]).sum(axis=(1, 2))],
                  reference_rendered_again_px=int((again != reference).sum()))
     shown = out[:4]
