@@ -30,11 +30,28 @@ from store_lookup import artifact_path  # noqa: E402
 
 def fresh_references(deform, patterns, spec: dict, segmentation: dict, seeds,
                      size=(128, 128)) -> list[np.ndarray]:
-    """The skin's no-contact marker image (H,W = size) under each camera-noise seed, as the
-    references node renders its takes (stages.markers.unify.no_contact_shots, shot index -1:
-    the skin's render seed gives the markers node's reference)."""
-    from stages.markers.unify import no_contact_shots
-    return no_contact_shots(deform, patterns, spec, segmentation, [(s, -1) for s in seeds], size=size)
+    """The skin's no-contact marker image (H,W = size) under each camera-noise seed: rendered as
+    the render node renders (its Renderer on the deform artifact's pad, the skin's look, light,
+    noise and upsample; one scene, the seed changed between shots) and segmented as the markers
+    node segments (the render seed gives the markers node's reference)."""
+    from stages.markers.render import Renderer, marker_set
+    from stages.markers.segment import segment
+    from stages.markers.unify import segmentation_params
+
+    look = spec.get("look", "none")
+    if look not in ("gelsight", "tactip"):
+        raise ValueError(f"reference_noise: look {look!r} has no camera noise (gelsight, tactip)")
+    params = segmentation_params(segmentation, look)
+    still = np.zeros(np.shape(deform["surface_z"]) + (3,), np.float32)
+    r = Renderer(deform["grid_x"], deform["grid_y"], deform["surface_z"], deform["on_pad"],
+                 marker_set(patterns, spec["pattern"]), look=look, size=size,
+                 light=spec.get("light"), noise=float(spec.get("noise", 0.0)),
+                 upsample=float(spec.get("upsample", 1.0)))
+    out = []
+    for seed in seeds:
+        r.seed = int(seed)                  # the noise of the shot: rng (seed, index + 1)
+        out.append(segment(r.render(still, -1)["raw"], **params))
+    return out
 
 
 def readings(predict, images, contact_id, force, references, band=(0.5, 2.0)) -> list[dict]:

@@ -68,13 +68,6 @@ GRAPH.node("markers", "stages.markers.unify:marker_sequence",
            grid={"skin": "render.skins + taxels.skins"},
            description="binary marker images: segmentation of camera looks, signal-to-marker of taxels")
 
-GRAPH.node("references", "stages.markers.unify:reference_takes",
-           inputs={"markers": "markers[skin={skin}]", "source": "{spec[source]}[skin={skin}]",
-                   "deform": "deform[sensor={spec[sensor]}]", "patterns": "patterns"},
-           params={"spec": "skins.{skin}", "segmentation": "segmentation", "takes": "force.reference_takes"},
-           grid={"skin": "force.skins"},
-           description="more takes of a camera skin's no-contact reference under fresh camera noise")
-
 # -- hardware: capture and ingest (source nodes: run only when named) ----------------------
 GRAPH.node("capture", "stages.capture.session:capture",
            inputs={"trajectory": "collection_trajectory", "indenters": "indenters"},
@@ -156,7 +149,7 @@ _FIT = {"config": "force.config", "steps": "force.steps", "batch_size": "force.b
 # target frames as M2M's fine-tune reads
 _ALIGN = {"align": "force.align", "align_pairs": "m2m.finetune.pairs_per_skin", "splice": "force.splice"}
 GRAPH.node("own", "stages.force.nodes:fit_own",
-           inputs={"markers": "markers[skin={skin}]", "references": "references[skin={skin}]"},
+           inputs={"markers": "markers[skin={skin}]"},
            params={**_FIT, "train_indenters": "splits.train_indenters"},
            grid={"skin": "force.skins"},
            description="force regressor on a skin's own labels: source-only model and oracle")
@@ -164,8 +157,7 @@ GRAPH.node("transfer", "stages.force.nodes:fit_transfer",
            inputs={"translated": "translate[source={source},target={target}]",
                    "source_calibration": "calibrate[sensor={source_spec[sensor]}]",
                    "target_calibration": "calibrate[sensor={target_spec[sensor]}]",
-                   "target_markers": "markers[skin={target}]",
-                   "target_references": "references[skin={target}]"},
+                   "target_markers": "markers[skin={target}]"},
            params={**_FIT, "finetune_steps": "force.finetune_steps", "compensation": "force.compensation",
                    "compensation_depth": "force.compensation_depth", **_ALIGN,
                    "train_indenters": "splits.train_indenters",
@@ -185,8 +177,7 @@ GRAPH.node("material", "stages.studies:transfer_study", inputs=_STUDY,
 GRAPH.node("hetero_seed", "stages.force.nodes:fit_transfer_seed",
            inputs={"transfer": "transfer[source={source},target={target}]",
                    "translated": "translate[source={source},target={target}]",
-                   "target_markers": "markers[skin={target}]",
-                   "target_references": "references[skin={target}]"},
+                   "target_markers": "markers[skin={target}]"},
            params={k: v for k, v in _FIT.items() if k != "seed"} | _ALIGN | {
                "finetune_steps": "force.finetune_steps", "train_indenters": "splits.train_indenters"},
            grid={"source,target": "hetero.groups.pairs", "seed": "hetero.seeds"},
@@ -199,8 +190,7 @@ GRAPH.node("hetero", "stages.studies:transfer_study", inputs={**_STUDY, "seeds":
 GRAPH.node("transfer_seed", "stages.force.nodes:fit_transfer_seed",
            inputs={"transfer": "transfer[source={model_pair[0]},target={model_pair[1]}]",
                    "translated": "translate[source={model_pair[0]},target={model_pair[1]}]",
-                   "target_markers": "markers[skin={model_pair[1]}]",
-                   "target_references": "references[skin={model_pair[1]}]"},
+                   "target_markers": "markers[skin={model_pair[1]}]"},
            params={k: v for k, v in _FIT.items() if k != "seed"} | _ALIGN | {
                "finetune_steps": "force.finetune_steps", "train_indenters": "splits.train_indenters",
                "model_pair": "control.model_pair"},

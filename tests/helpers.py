@@ -51,17 +51,3 @@ def load_script(name: str):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
-
-
-def flat_pad(n: int = 17, size: float = 20.0) -> dict:
-    """A deform artifact's pad keys for an undeformed n x n grid over a size x size mm pad."""
-    g = (np.arange(n) - (n - 1) / 2) * size / (n - 1)
-    return {"grid_x": g, "grid_y": g, "surface_z": np.zeros((n, n)), "on_pad": np.ones((n, n), bool)}
-
-
-def gelsight_patterns(name: str = "gelsight-A-II", layout: str = "A-II") -> dict:
-    """A patterns artifact holding one GelSight marker layout under `name`."""
-    from stages.markers.patterns import gelsight_pattern
-    m = gelsight_pattern(layout)
-    return {f"markers/{name}/centers": m.centers, f"markers/{name}/axes": m.axes,
-            f"markers/{name}/angles": m.angles, f"markers/{name}/pad_size_mm": np.array(m.pad_size_mm)}

@@ -143,57 +143,25 @@ def _split_timing(history: Mapping, ckpt) -> tuple[dict, dict]:
 
 # ---------------------------------------------------------------------------- training nodes
 
-def reference_pool(reference, takes) -> list[np.ndarray]:
-    """The references a skin's training contacts are read against: its reference, then its
-    `takes` (K,H,W) (other no-contact shots of its camera, node `references`), if any."""
-    reference = np.asarray(reference)
-    takes = np.zeros((0,) + reference.shape, reference.dtype) if takes is None else np.asarray(takes)
-    if takes.shape[1:] != reference.shape:
-        raise ValueError(f"reference takes {takes.shape} do not match the reference {reference.shape}")
-    return [reference, *takes]
-
-
-def _takes(references: Mapping | None):
-    return None if references is None else np.asarray(references["takes"])
-
-
-def _sequences(images, runs, labels, pool, model_cfg) -> tuple[list, list]:
-    """(training sequences, the run each is of): every contact's images (one array per run of
-    `labels`) read against each reference of `pool` (reference_pool), one sequence each."""
-    from stages.force.train import make_sequences
-    forces = [labels[a:b] for a, b in runs]
-    return ([seq for ref in pool for seq in make_sequences(images, forces, ref, model_cfg)],
-            list(runs) * len(pool))
-
-
 def fit_own(*, markers: Mapping, skin: str, train_indenters: Sequence[str], config: Mapping,
-            steps: int, batch_size: int, lr: float, seed: int, references: Mapping | None = None,
-            checkpoint: str | None = None) -> dict:
+            steps: int, batch_size: int, lr: float, seed: int, checkpoint: str | None = None) -> dict:
     """Node `own[skin]`: the regressor on the skin's own images and labels.
 
     Trained on the contacts of `train_indenters` (source-only model when the skin is a source,
-    the oracle when it is a target).  `references` (node `references[skin]`): every contact is
-    read against the reference and against each of its `takes` (reference_pool), one training
-    sequence each, so that the model does not learn one take's noisy edge pixels; the model
-    keeps the skin's reference.  (GelSight A-II, two training seeds: the median predicted /
-    true |Fz| at 0.5-2 N read against nine fresh takes spans 0.94-1.27 and 0.82-1.17, against
-    1.00-2.03 and 0.98-1.66 trained on the one reference, and 1.19-1.52 and 0.73-1.48 with one
-    take drawn per contact.)  Returns
-    weights/..., attrs {config, skin, train_indenters, reference_takes, history} and
-    figures/loss.  `checkpoint` (the engine's): the training resumes from there after an
-    interruption (stages.force.train.Checkpoint).
+    the oracle when it is a target).  Returns weights/..., attrs {config, skin,
+    train_indenters, history} and figures/loss.  `checkpoint` (the engine's): the training
+    resumes from there after an interruption (stages.force.train.Checkpoint).
     """
     from stages.force.model import to_arrays
-    from stages.force.train import fit, loss_figure
+    from stages.force.train import fit, loss_figure, make_sequences
     model_cfg, train = _split_config(config)
     runs = contact_runs(markers, train_indenters)
     if not runs:
         raise ValueError(f"fit_own[{skin}]: no contacts of train_indenters {list(train_indenters)}")
     reference = np.asarray(markers["reference"])
-    takes = _takes(references)
     force = np.asarray(markers["force"], np.float32)
-    seqs, _ = _sequences(_read_runs(markers, "images", runs), runs, force,
-                         reference_pool(reference, takes), model_cfg)
+    seqs = make_sequences(_read_runs(markers, "images", runs), [force[a:b] for a, b in runs],
+                          reference, model_cfg)
     ckpt = _checkpoint(checkpoint)
     model, history = fit(seqs, model_cfg, steps=int(steps), batch_size=int(batch_size), lr=float(lr),
                          seed=int(seed), seq_len=int(train["seq_len"]), desc=f"own[{skin}]",
@@ -202,8 +170,7 @@ def fit_own(*, markers: Mapping, skin: str, train_indenters: Sequence[str], conf
     kept, timing = _split_timing(history, ckpt)
     return {"weights": to_arrays(model),
             "attrs": {"config": model.config, "train": train, "skin": skin,
-                      "train_indenters": list(train_indenters),
-                      "reference_takes": 0 if takes is None else len(takes), "history": kept},
+                      "train_indenters": list(train_indenters), "history": kept},
             "timing": timing,
             "figures": {"loss": loss_figure({skin: history}, f"own[{skin}]")}}
 
@@ -215,7 +182,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
                  target_markers: Mapping | None = None,
                  source_spec: Mapping | None = None, target_spec: Mapping | None = None,
                  align: str = "none", align_pairs: int = 0, splice: str = "none",
-                 target_references: Mapping | None = None, checkpoint: str | None = None) -> dict:
+                 checkpoint: str | None = None) -> dict:
     """Node `transfer[source,target]`: regressors on the source's sequences translated into the
     target's style (images; reference = the target's), trained with the source's labels
     (genforce) and with the labels compensated to the target's material (genforce_comp).
@@ -237,18 +204,15 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     `splice` ("none", "replace", "mix"): those same paired frames of the target replace the
     translations they are paired with in the training sequences (splice_paired), keeping the
     source's labels; "mix" trains on each contact as translated and as spliced
-    (_training_images).  `target_references` (node `references[target]`): every training
-    contact is read against the target's reference and against each of its takes, one sequence
-    each, as fit_own reads a skin's own (M2M draws its translations against the one reference
-    and copies its noise; read against other takes too, A-I -> A-II's genforce_comp reads
-    0.97-1.32 of the true |Fz| at 0.5-2 N against nine fresh takes, 1.02-1.68 without).
-    `checkpoint` (the engine's): an interrupted node re-runs none of its finished fits and resumes the one it
+    (_training_images).
+    `checkpoint` (the
+    engine's): an interrupted node re-runs none of its finished fits and resumes the one it
     was in (stages.force.train.Checkpoint).
     """
     from stages.force.compensation import (compensate, curves_figure, curves_from_calibration,
                                            label_scale, loading_mask, shear_ratio)
     from stages.force.model import to_arrays
-    from stages.force.train import ContactSequence, fit_two_stage, loss_figure
+    from stages.force.train import ContactSequence, fit_two_stage, loss_figure, make_sequences
     name = f"transfer[{source}->{target}]"
     _check_align(align, target_markers, name)
     model_cfg, train = _split_config(config)
@@ -266,8 +230,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     comp = compensate(force, depth, loading, src_curves, tgt_curves, mode=compensation, depth_ratio=k)
     images, seq_runs, spliced = _training_images(translated, runs, target_markers, train_indenters,
                                                  align_pairs, splice, name)
-    pool = reference_pool(reference, _takes(target_references))
-    seqs, seq_runs = _sequences(images, seq_runs, force, pool, model_cfg)
+    seqs = make_sequences(images, [force[a:b] for a, b in seq_runs], reference, model_cfg)
     kwargs = dict(steps=int(steps), finetune_steps=int(finetune_steps), batch_size=int(batch_size),
                   lr=float(lr), seed=int(seed), seq_len=int(train["seq_len"]),
                   finetune_lr_factor=float(train["finetune_lr_factor"]))
@@ -302,7 +265,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
             "attrs": {"config": genforce.config, "train": train, "source": source, "target": target,
                       "compensation_identity": bool(identity), "compensation": compensation,
                       "compensation_depth": compensation_depth, "depth_ratio": k, "align": aligned,
-                      "spliced": spliced, "reference_takes": len(pool) - 1,
+                      "spliced": spliced,
                       "shear_ratio": shear_ratio(src_curves, tgt_curves, compensation, k),
                       "force_range": {m: {"min": mdl.config["force_min"], "max": mdl.config["force_max"]}
                                       for m, mdl in models.items()},
@@ -341,7 +304,7 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
                       train_indenters: Sequence[str] | None = None, model_pair=None,
                       source: str = "", target: str = "", target_markers: Mapping | None = None,
                       align: str = "none", align_pairs: int = 0, splice: str = "none",
-                      target_references: Mapping | None = None, checkpoint: str | None = None) -> dict:
+                      checkpoint: str | None = None) -> dict:
     """Nodes `transfer_seed[seed]` and `hetero_seed[source,target,seed]`: `transfer`'s
     genforce_comp model trained again from another seed: the same translated contacts of
     `train_indenters`, the same labels (compensated with the curves, mode and depth ratio
@@ -351,11 +314,10 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
     templates read), and their spread is the chance in a study's figure (hetero; source,
     target: the fan-out's values, which transfer's attrs hold too).  Returns genforce_comp
     weights and attrs {config, source, target, seed, history, align, spliced}.  `align`,
-    `align_pairs`, `splice`, `target_markers`, `target_references` and `checkpoint`: as
-    fit_transfer's."""
+    `align_pairs`, `splice`, `target_markers` and `checkpoint`: as fit_transfer's."""
     from stages.force.compensation import Curves, compensate, loading_mask
     from stages.force.model import to_arrays
-    from stages.force.train import fit_two_stage
+    from stages.force.train import fit_two_stage, make_sequences
     info = attrs_of(transfer)
     name = f"transfer[{info['source']}->{info['target']}] seed {seed}"
     _check_align(align, target_markers, name)
@@ -373,8 +335,7 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
                            depth_ratio=float(info["depth_ratio"]))
     images, seq_runs, spliced = _training_images(translated, runs, target_markers, train_indenters,
                                                  align_pairs, splice, name)
-    seqs, _ = _sequences(images, seq_runs, force, reference_pool(reference, _takes(target_references)),
-                         model_cfg)
+    seqs = make_sequences(images, [force[a:b] for a, b in seq_runs], reference, model_cfg)
     ckpt = _checkpoint(checkpoint)
     model, history = fit_two_stage(seqs, model_cfg, steps=int(steps), finetune_steps=int(finetune_steps),
                                    batch_size=int(batch_size), lr=float(lr), seed=int(seed),

@@ -14,7 +14,7 @@ from stages.force.metrics import METRICS, force_metrics
 from stages.force.model import (ForceRegressor, MeanPredictor, StreamingPredictor, from_arrays, load_model,
                                 load_predictor, model_config, predict_contacts, predict_sequence,
                                 resolve_range, to_arrays)
-from stages.force.nodes import METHODS, contact_runs, reference_pool, fit_own, fit_transfer, fit_transfer_seed, force_study
+from stages.force.nodes import METHODS, contact_runs, fit_own, fit_transfer, fit_transfer_seed, force_study
 from stages.force.train import fit, make_sequences
 
 from force_synthetic import contact_artifact
@@ -764,83 +764,3 @@ def test_fit_transfer_splices_the_paired_target_frames(skins, tiny_config):
         np.testing.assert_array_equal(seed["genforce_comp"][k], v)
     with pytest.raises(InputError, match=r"transfer\[B->A\]: splice True is not one of \('none', 'replace', 'mix'\)"):
         fit_transfer(translated=translated, target_markers=target, splice=True, checkpoint="/nonexistent/x", **kw)
-
-
-def test_reference_pool_is_the_reference_then_its_takes():
-    ref = np.zeros((4, 4), np.uint8)
-    takes = np.stack([np.full((4, 4), v, np.uint8) for v in (1, 2)])
-    assert len(reference_pool(ref, None)) == 1 and reference_pool(ref, None)[0] is ref
-    assert len(reference_pool(ref, takes[:0])) == 1
-    pool = reference_pool(ref, takes)
-    assert [int(r[0, 0]) for r in pool] == [0, 1, 2]
-    with pytest.raises(ValueError, match=r"reference takes \(2, 3, 3\) do not match the reference \(4, 4\)"):
-        reference_pool(ref, np.zeros((2, 3, 3), np.uint8))
-
-
-def test_fit_own_reads_every_contact_against_every_take(nodes_out, skins, tiny_config, monkeypatch):
-    import stages.force.train as train_mod
-    kw = dict(config={**tiny_config, "seq_len": 10}, steps=4, batch_size=2, lr=0.05, seed=0)
-    train = ["sphere", "prism", "cone"]
-    a = skins["A"]
-    # no takes (a taxel skin): the very model trained without the references input
-    none = fit_own(markers=a, skin="A", train_indenters=train,
-                   references={"takes": np.zeros((0, 32, 32), np.uint8)}, **kw)
-    for k, v in nodes_out[0]["A"]["weights"].items():
-        np.testing.assert_array_equal(none["weights"][k], v, err_msg=k)
-    assert none["attrs"]["reference_takes"] == 0 and none["attrs"]["history"]["contacts"] == 9
-    seen = []
-    real = train_mod.make_sequences
-
-    def spy(images, forces, reference, config):
-        seen.append((len(images), np.asarray(reference).copy()))
-        return real(images, forces, reference, config)
-
-    monkeypatch.setattr(train_mod, "make_sequences", spy)
-    takes = np.stack([a["reference"]] * 2)
-    takes[0, 0, :3] = 255 - takes[0, 0, :3]              # a few edge pixels flipped in each
-    takes[1, 5, 4:9] = 255 - takes[1, 5, 4:9]
-    out = fit_own(markers=a, skin="A", train_indenters=train, references={"takes": takes}, **kw)
-    assert [n for n, _ in seen] == [9, 9, 9]
-    assert all(np.array_equal(r, e) for (_, r), e in zip(seen, [a["reference"], *takes]))
-    assert out["attrs"]["reference_takes"] == 2 and out["attrs"]["history"]["contacts"] == 27
-    assert np.array_equal(load_model(out).reference.numpy(), a["reference"])   # keeps the skin's
-    assert any(not np.array_equal(out["weights"][k], v) for k, v in nodes_out[0]["A"]["weights"].items())
-
-
-def test_fit_transfer_and_its_seeds_read_every_contact_against_the_targets_takes(nodes_out, skins,
-                                                                                  tiny_config, monkeypatch):
-    import stages.force.train as train_mod
-    kw = dict(config={**tiny_config, "seq_len": 10}, steps=4, batch_size=2, lr=0.05, seed=0,
-              train_indenters=["sphere", "prism", "cone"])
-    run = dict(translated=skins["A"], source_calibration=_calibration_art(1.0),
-               target_calibration=_calibration_art(2.0), source="B", target="A", finetune_steps=0, **kw)
-    _, _, stiffer = nodes_out
-    none = fit_transfer(target_references={"takes": np.zeros((0, 32, 32), np.uint8)}, **run)
-    for m in METHODS[1:3]:
-        for k, v in stiffer[m].items():
-            np.testing.assert_array_equal(none[m][k], v, err_msg=f"{m} {k}")
-    assert none["attrs"]["reference_takes"] == 0
-    seen = []
-    real = train_mod.make_sequences
-
-    def spy(images, forces, reference, config):
-        seen.append((len(images), np.asarray(reference).copy()))
-        return real(images, forces, reference, config)
-
-    monkeypatch.setattr(train_mod, "make_sequences", spy)
-    takes = np.stack([skins["A"]["reference"]] * 2)
-    takes[0, 2, :4] = 255 - takes[0, 2, :4]
-    takes[1, 9, 1:6] = 255 - takes[1, 9, 1:6]
-    out = fit_transfer(target_references={"takes": takes}, **run)
-    expect = [skins["A"]["reference"], *takes]
-    assert [n for n, _ in seen] == [9, 9, 9]
-    assert all(np.array_equal(r, e) for (_, r), e in zip(seen, expect))
-    assert out["attrs"]["reference_takes"] == 2
-    assert out["attrs"]["history"]["genforce_comp"]["pretrain"]["contacts"] == 27
-    assert np.array_equal(load_model(out, "genforce_comp").reference.numpy(), skins["A"]["reference"])
-    seen.clear()
-    seeded = fit_transfer_seed(transfer=out, translated=skins["A"], seed=0, target_references={"takes": takes},
-                               **{k: v for k, v in kw.items() if k != "seed"}, finetune_steps=0)
-    assert [n for n, _ in seen] == [9, 9, 9]
-    for k, v in out["genforce_comp"].items():              # seed 0: transfer's own model again
-        np.testing.assert_array_equal(seeded["genforce_comp"][k], v, err_msg=k)

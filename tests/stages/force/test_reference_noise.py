@@ -7,14 +7,23 @@ from stages.markers.patterns import gelsight_pattern
 from stages.markers.render import Renderer
 from stages.markers.segment import segment
 from stages.markers.unify import segmentation_params
-from tests.helpers import flat_pad as pad
-from tests.helpers import gelsight_patterns as patterns
 from tests.helpers import load_script
 
 
 @pytest.fixture(scope="module")
 def script():
     return load_script("reference_noise")
+
+
+def pad(n=17, size=20.0):
+    g = (np.arange(n) - (n - 1) / 2) * size / (n - 1)
+    return {"grid_x": g, "grid_y": g, "surface_z": np.zeros((n, n)), "on_pad": np.ones((n, n), bool)}
+
+
+def patterns(name="gelsight-A-II"):
+    m = gelsight_pattern("A-II")
+    return {f"markers/{name}/centers": m.centers, f"markers/{name}/axes": m.axes,
+            f"markers/{name}/angles": m.angles, f"markers/{name}/pad_size_mm": np.array(m.pad_size_mm)}
 
 
 SPEC = {"pattern": "gelsight-A-II", "look": "gelsight", "noise": 3.0}
