@@ -206,5 +206,6 @@ GRAPH.node("control", "stages.control.nodes:control_node",
                    "skins": "skins", "sensors": "sensors", "materials": "materials",
                    "segmentation": "segmentation", "backend": "render.backend", "size": "render.size",
                    "duration_s": "control.duration_s", "pull": "control.pull", "seed": "control.seed",
+                   "reference_seed": "control.reference_seed",
                    "tolerance_N": "control.tolerance_N"},
            description="study control (paper Fig. 7): grasping at a target force, slip avoidance")

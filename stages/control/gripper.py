@@ -240,7 +240,8 @@ class SkinCamera:
                                  light=spec.get("light"), noise=float(spec.get("noise", 0.0)),
                                  seed=int(seed), upsample=float(upsample))
         self.segmentation = segmentation_params(segmentation or {}, look) if look != "none" else {}
-        self.renderer.seed = int(seed if reference_seed is None else reference_seed)
+        self.reference_seed = int(seed if reference_seed is None else reference_seed)
+        self.renderer.seed = self.reference_seed
         self.reference = self(np.zeros(shape + (3,), np.float32), -1)
         self.renderer.seed = int(seed)
 

@@ -55,10 +55,15 @@ def control_node(*, model, model_pair, skins: Mapping, sensors: Mapping, materia
     gel (sensors.<skin's sensor>, materials.<its material>) and its image chain (SkinCamera:
     the skin's look rendered and segmented as its training frames were).  supervised: the
     skin's own-label model (own[skin]), run through the same episodes as the reference a
-    transferred model is measured against.  The rest as control_study."""
+    transferred model is measured against.  reference_seed (control.reference_seed): null for
+    the skin's own no-contact reference, or an integer camera-noise seed for a fresh take of it.
+    The rest as control_study."""
     from stages.common import InputError
     from stages.markers.render import marker_set
 
+    ref_seed = study.get("reference_seed")
+    if ref_seed is not None and (isinstance(ref_seed, bool) or not isinstance(ref_seed, int)):
+        raise InputError(f"control: reference_seed must be an integer or null, got {ref_seed!r}")
     target = str(model_pair[1])
     if target not in skins:
         raise InputError(f"control: model_pair target {target!r} is not a skin ({', '.join(skins)})")
@@ -84,12 +89,14 @@ def control_node(*, model, model_pair, skins: Mapping, sensors: Mapping, materia
 
 def skin_camera(*, skin: Mapping, markers, sensor: Mapping, size, twin: Mapping | None = None,
                 segmentation: Mapping | None = None, skin_name: str = "",
-                backend: str = "auto", noise_seed: int = 0) -> SkinCamera:
+                backend: str = "auto", noise_seed: int = 0,
+                reference_seed: int | None = None) -> SkinCamera:
     """The skin's image chain on the twin's solver grid.  The mesh keeps the vertex spacing the
     skin's frames were rendered with (the sensor's grid, times the skin's `upsample`); the
     reference is the skin's own (the render node's seed: the markers node's reference, bit for
-    bit), and the shots' camera noise has its own seed, derived from it and noise_seed, so no
-    shot repeats a training frame's noise."""
+    bit) unless `reference_seed` names another camera-noise seed for its shot (a re-mounted
+    sensor's fresh take), and the shots' camera noise has its own seed, derived from the
+    render seed and noise_seed, so no shot repeats a training frame's noise."""
     from stages.sim.indenters import grid_coords
     from stages.sim.sensors import pad_grid
 
@@ -100,7 +107,7 @@ def skin_camera(*, skin: Mapping, markers, sensor: Mapping, size, twin: Mapping 
     render_seed = int(skin.get("seed", zlib.crc32(skin_name.encode())))
     return SkinCamera(gx, gy, markers, spec=skin, size=size, segmentation=segmentation,
                       seed=zlib.crc32(f"control/{render_seed}/{int(noise_seed)}".encode()),
-                      reference_seed=render_seed,
+                      reference_seed=render_seed if reference_seed is None else int(reference_seed),
                       upsample=twin_spacing / spacing * float(skin.get("upsample", 1.0)),
                       backend=backend)
 
@@ -111,7 +118,7 @@ def control_study(*, model, objects: Mapping, grasp: list, slip: list, sensor: M
                   tolerance_N: float = 0.25, model_pair=None, members: Mapping | None = None,
                   supervised=None, skin: Mapping | None = None, markers=None,
                   segmentation: Mapping | None = None, skin_name: str = "",
-                  backend: str = "auto") -> dict:
+                  backend: str = "auto", reference_seed: int | None = None) -> dict:
     """The control study.  model_pair: the (source, target) skins of `model`, for the record.
     model: an artifact holding force-model weights (loaded with
     stages.force.model.load_predictor, prefix "genforce_comp"); None runs the oracle (the
@@ -122,7 +129,8 @@ def control_study(*, model, objects: Mapping, grasp: list, slip: list, sensor: M
     control/supervised/....  skin (its params), markers (its pattern), segmentation: the
     fingers' images come through the skin's image chain (skin_camera); None: drawn masks of
     twin["pattern"].  seed: the noise streams, the oracle's and the skin camera's (the model's
-    predictions are deterministic).  See run_study."""
+    predictions are deterministic).  reference_seed: the camera-noise seed of the skin camera's
+    no-contact reference (None: the skin's own; skin_camera).  See run_study."""
     kw = dict(objects=objects, grasp=grasp, slip=slip, sensor=sensor, material=material, size=size,
               duration_s=duration_s, pull=pull, seed=seed, twin=twin, controller=controller,
               tolerance_N=tolerance_N)
@@ -135,10 +143,11 @@ def control_study(*, model, objects: Mapping, grasp: list, slip: list, sensor: M
                 raise ValueError("control_study: a skin camera needs the skin's markers")
             kw["camera"] = skin_camera(skin=skin, markers=markers, sensor=sensor, size=size,
                                        twin=twin, segmentation=segmentation, skin_name=skin_name,
-                                       backend=backend, noise_seed=seed)
+                                       backend=backend, noise_seed=seed, reference_seed=reference_seed)
         out = _control_runs(model, members, supervised, kw)
     if skin is not None:
-        out["attrs"]["camera"] = {"skin": skin_name, "look": str(skin.get("look", "none"))}
+        out["attrs"]["camera"] = {"skin": skin_name, "look": str(skin.get("look", "none")),
+                                  "reference_seed": kw["camera"].reference_seed}
     else:
         out["attrs"]["camera"] = {"drawn": str(merged_settings(DEFAULT_TWIN, twin, "twin")["pattern"])}
     return out

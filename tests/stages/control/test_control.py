@@ -410,6 +410,14 @@ def test_skin_camera_renders_and_segments_as_the_skins_frames_are_made():
     assert np.array_equal(node.renderer.mesh.x, renderer.mesh.x)           # the same vertices
     assert node.renderer.seed == zlib.crc32(b"control/11/0")               # not a training frame's noise
     assert np.array_equal(node.reference, reference)                       # but the skin's reference
+    assert node.reference_seed == 11
+    # a re-mounted sensor's fresh take: the reference shot under another noise seed, the shots as before
+    fresh = skin_camera(skin={**GELSIGHT_SKIN, "seed": 11}, markers=markers, sensor=SENSOR, size=SIZE,
+                        twin=TWIN, segmentation=SEGMENTATION, reference_seed=12)
+    renderer.seed = 12
+    assert fresh.reference_seed == 12 and fresh.renderer.seed == node.renderer.seed
+    assert np.array_equal(fresh.reference, segment(renderer.render(np.zeros_like(disp), -1)["raw"], **params))
+    assert 0 < (fresh.reference != node.reference).sum() < 100              # a few marker-edge pixels
     coarse = SkinCamera(node.renderer.mesh.x[1:-1][::2], node.renderer.mesh.y[1:-1][::2], markers,
                         spec=GELSIGHT_SKIN, size=SIZE, segmentation=SEGMENTATION, seed=11, upsample=2)
     assert np.array_equal(coarse.renderer.mesh.x, renderer.mesh.x)
@@ -477,7 +485,9 @@ def test_control_node_puts_the_target_skin_on_the_fingers(monkeypatch):
     out = nodes.control_node(model={"gain": 3.0}, supervised={"gain": 1.0},
                              model_pair=["gelsight-A-I", "gelsight-A-II"], **kw)
     assert loaded == [(3.0, "genforce_comp"), (1.0, "weights")]
-    assert out["attrs"]["camera"] == {"skin": "gelsight-A-II", "look": "gelsight"}
+    render_seed = zlib.crc32(b"gelsight-A-II")                 # GELSIGHT_SKIN has no `seed`
+    assert out["attrs"]["camera"] == {"skin": "gelsight-A-II", "look": "gelsight",
+                                      "reference_seed": render_seed}
     assert out["attrs"]["supervised"] is True
     m = out["metrics"]
     assert "control/slip/glue_stick/slip_mm_passive" in m
@@ -493,6 +503,10 @@ def test_control_node_puts_the_target_skin_on_the_fingers(monkeypatch):
     with pytest.raises(InputError, match="sensor 'gelsight-r10' has material 'r10', not in materials"):
         nodes.control_node(model={"gain": 3.0}, model_pair=["gelsight-A-I", "gelsight-A-II"],
                            **{**kw, "materials": {}})
+    for bad in ("11", 1.5, True):
+        with pytest.raises(InputError, match=f"control: reference_seed must be an integer or null, got {bad!r}"):
+            nodes.control_node(model={"gain": 3.0}, model_pair=["gelsight-A-I", "gelsight-A-II"],
+                               **{**kw, "reference_seed": bad})
     # the oracle with a supervised model: both run, the oracle's metrics unprefixed
     loaded.clear()
     both = nodes.control_node(model=None, supervised={"gain": 1.0}, model_pair=["gelsight-A-I", "gelsight-A-II"],
