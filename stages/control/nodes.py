@@ -62,8 +62,8 @@ def control_node(*, model, model_pair, skins: Mapping, sensors: Mapping, materia
     from stages.markers.render import marker_set
 
     ref_seed = study.get("reference_seed")
-    if ref_seed is not None and (isinstance(ref_seed, bool) or not isinstance(ref_seed, int)):
-        raise InputError(f"control: reference_seed must be an integer or null, got {ref_seed!r}")
+    if ref_seed is not None and (isinstance(ref_seed, bool) or not isinstance(ref_seed, int) or ref_seed < 0):
+        raise InputError(f"control: reference_seed must be a non-negative integer or null, got {ref_seed!r}")
     target = str(model_pair[1])
     if target not in skins:
         raise InputError(f"control: model_pair target {target!r} is not a skin ({', '.join(skins)})")

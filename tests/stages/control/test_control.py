@@ -503,8 +503,8 @@ def test_control_node_puts_the_target_skin_on_the_fingers(monkeypatch):
     with pytest.raises(InputError, match="sensor 'gelsight-r10' has material 'r10', not in materials"):
         nodes.control_node(model={"gain": 3.0}, model_pair=["gelsight-A-I", "gelsight-A-II"],
                            **{**kw, "materials": {}})
-    for bad in ("11", 1.5, True):
-        with pytest.raises(InputError, match=f"control: reference_seed must be an integer or null, got {bad!r}"):
+    for bad in ("11", 1.5, True, -3):
+        with pytest.raises(InputError, match=f"control: reference_seed must be a non-negative integer or null, got {bad!r}"):
             nodes.control_node(model={"gain": 3.0}, model_pair=["gelsight-A-I", "gelsight-A-II"],
                                **{**kw, "reference_seed": bad})
     # the oracle with a supervised model: both run, the oracle's metrics unprefixed
