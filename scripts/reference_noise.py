@@ -16,7 +16,6 @@ every row alike.
 """
 import argparse
 import sys
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -79,6 +78,7 @@ def main(argv=None):
 
     from pipeline.artifact import Artifact
     from stages.force.model import load_model, predict_contacts
+    from stages.common import attrs_of
     from stages.force.nodes import _test_set
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -101,7 +101,7 @@ def main(argv=None):
     fresh = fresh_references(get(f"deform[sensor={spec['sensor']}]"), get("patterns"), spec,
                              params.get("segmentation") or {}, args.seeds,
                              size=np.shape(test["reference"]))
-    render_seed = int(spec.get("seed", zlib.crc32(args.skin.encode())))
+    render_seed = int(attrs_of(get(f"render[skin={args.skin}]"))["seed"])   # the reference's shot
     refs = [test["reference"]] + fresh
     names = [f"own reference (seed {render_seed})"] + [f"seed {s}" for s in args.seeds]
     models = [(f"own[{args.skin}]", load_model(get(f"own[skin={args.skin}]"), "weights"))]
