@@ -179,7 +179,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
                  source: str, target: str, config: Mapping, steps: int, batch_size: int, lr: float,
                  seed: int, finetune_steps: int, train_indenters: Sequence[str] | None = None,
                  compensation: str = "normal", compensation_depth: str = "shared",
-                 target_markers: Mapping | None = None, indenters: Mapping | None = None,
+                 target_markers: Mapping | None = None,
                  source_spec: Mapping | None = None, target_spec: Mapping | None = None,
                  align: str = "none", align_pairs: int = 0, splice: str = "none",
                  checkpoint: str | None = None) -> dict:
@@ -209,12 +209,15 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     engine's): an interrupted node re-runs none of its finished fits and resumes the one it
     was in (stages.force.train.Checkpoint).
     """
-    from stages.force.compensation import curves_figure, label_scale, loading_mask, shear_ratio
+    from stages.force.compensation import (compensate, curves_figure, curves_from_calibration,
+                                           label_scale, loading_mask, shear_ratio)
     from stages.force.model import to_arrays
     from stages.force.train import ContactSequence, fit_two_stage, loss_figure, make_sequences
     name = f"transfer[{source}->{target}]"
     _check_align(align, target_markers, name)
     model_cfg, train = _split_config(config)
+    src_curves = curves_from_calibration(source_calibration)
+    tgt_curves = curves_from_calibration(target_calibration)
     runs = contact_runs(translated, train_indenters)
     if not runs:
         raise ValueError(f"fit_transfer[{source}->{target}]: no translated contacts to train on")
@@ -222,11 +225,9 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     force = np.asarray(translated["force"], np.float32)
     depth = np.asarray(translated["normalised_depth"], float)
     loading = loading_mask(np.asarray(translated["phase"]))
-    comp, k, (src_curves, tgt_curves), contact = transfer_labels(
-        translated, source_calibration, target_calibration, mode=compensation,
-        depth_mode=compensation_depth, target_markers=target_markers, indenters=indenters,
-        name=f"fit_transfer[{source}->{target}]")
-    identity = src_curves == tgt_curves and k == 1.0 and not contact["applied"]
+    k = _depth_ratio(compensation_depth, depth, target_markers, f"fit_transfer[{source}->{target}]")
+    identity = src_curves == tgt_curves and k == 1.0
+    comp = compensate(force, depth, loading, src_curves, tgt_curves, mode=compensation, depth_ratio=k)
     images, seq_runs, spliced = _training_images(translated, runs, target_markers, train_indenters,
                                                  align_pairs, splice, name)
     seqs = make_sequences(images, [force[a:b] for a, b in seq_runs], reference, model_cfg)
@@ -261,10 +262,8 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
                                               target: (target_calibration, tgt_curves)},
                                              f"compensation {source} -> {target}")}
     return {"genforce": weights, "genforce_comp": weights_comp,
-            "labels": comp.astype(np.float32), "label_frame": _frames(translated),
             "attrs": {"config": genforce.config, "train": train, "source": source, "target": target,
                       "compensation_identity": bool(identity), "compensation": compensation,
-                      "contact_shear": contact,
                       "compensation_depth": compensation_depth, "depth_ratio": k, "align": aligned,
                       "spliced": spliced,
                       "shear_ratio": shear_ratio(src_curves, tgt_curves, compensation, k),
@@ -280,97 +279,6 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
 
 
 DEPTH_MODES = ("shared", "paired")
-# collections whose deepest presses differ by more than this fraction press an indenter into
-# differently shaped contacts: mode "contact" models the target's shear there
-CONTACT_DEPTH_TOLERANCE = 0.1
-
-
-def _pad_spec(attrs: Mapping) -> dict:
-    """The contact geometry of a calibrated sensor from its calibrate artifact's attrs: pad,
-    curvature and solver spacing, on an odd grid covering the pad (its centre a cell centre)."""
-    spacing = float(attrs["spacing_mm"])
-    pad = [float(v) for v in attrs["pad_mm"]]
-    grid = [int(np.ceil(p / spacing)) // 2 * 2 + 1 for p in (pad[1], pad[0])]
-    return {"grid": grid, "spacing_mm": spacing, "pad_mm": pad,
-            "curvature_radius_mm": float(attrs["curvature_radius_mm"])}
-
-
-def contact_areas(indenters: Mapping, names, indenter_id, contact_id, touchdown, depth,
-                  spec: Mapping) -> np.ndarray:
-    """(N,) mm^2: the rigid indenter's overlap with the undeformed pad of `spec` (_pad_spec) at
-    each frame's depth, the indenter's tip over its contact's touchdown point (N,2) mm: the
-    cells whose surface gap to the indenter is below the depth."""
-    from stages.sim.indenters import mesh_from_artifact
-    from stages.sim.sensors import contact_height, surface_gap
-    gap, cell = surface_gap(spec), float(spec["spacing_mm"]) ** 2
-    names = np.asarray(names).astype(str)
-    contact_id, indenter_id = np.asarray(contact_id), np.asarray(indenter_id)
-    depth, touchdown = np.asarray(depth, float), np.asarray(touchdown, float)
-    meshes, out = {}, np.zeros(depth.size)
-    for c in np.unique(contact_id):
-        rows = np.flatnonzero(contact_id == c)
-        name = str(names[indenter_id[rows[0]]])
-        if name not in meshes:
-            meshes[name] = mesh_from_artifact(indenters, name)
-        height = contact_height(meshes[name], spec, touchdown[rows[0]], gap)
-        levels = np.sort(height[np.isfinite(height)].ravel())
-        out[rows] = np.searchsorted(levels, depth[rows], side="left") * cell
-    return out
-
-
-def transfer_labels(translated: Mapping, source_calibration: Mapping, target_calibration: Mapping, *,
-                    mode: str, depth_mode: str, target_markers: Mapping | None,
-                    indenters: Mapping | None, name: str):
-    """(labels (N,3) float32, depth ratio k, (source Curves, target Curves), contact attrs): the
-    source's labels of every translated frame compensated to the target (compensation.compensate
-    in `mode`, at depth_mode's k).  Mode "contact" also replaces the shear labels by the
-    target's sticking contact (compensation.contact_shear) where the two collections press to
-    different depths: the target's depth at a paired frame is k times the source's normalised
-    depth times the target calibration's max_depth_mm, its contact the indenter's overlap with
-    the target's pad there (contact_areas), its stiffness the calibration's shear leg
-    (shear_stiffness, at the calibration indenter's contact), capped at the calibration's
-    friction mu (attrs; none recorded: no cap) times the compensated |Fz|."""
-    from stages.force.compensation import (compensate, contact_shear, curves_from_calibration,
-                                           loading_mask, shear_stiffness)
-    src_curves = curves_from_calibration(source_calibration)
-    tgt_curves = curves_from_calibration(target_calibration)
-    force = np.asarray(translated["force"], np.float32)
-    depth = np.asarray(translated["normalised_depth"], float)
-    loading = loading_mask(np.asarray(translated["phase"]))
-    k = _depth_ratio(depth_mode, depth, target_markers, name)
-    comp = compensate(force, depth, loading, src_curves, tgt_curves, mode=mode, depth_ratio=k)
-    contact = {"applied": False}
-    if mode == "contact":
-        attrs = attrs_of(target_calibration)
-        missing = [key for key in ("max_depth_mm", "spacing_mm", "pad_mm", "curvature_radius_mm", "indenter")
-                   if key not in attrs]
-        if missing:
-            raise ValueError(f"{name}: compensation 'contact' needs the target calibration's "
-                             f"attrs {missing}")
-        target_depth = k * depth * float(attrs["max_depth_mm"])
-        source_deepest = float(np.max(np.asarray(translated["depth"], float)))
-        target_deepest = float(np.max(target_depth))
-        contact.update(source_depth_mm=source_deepest, target_depth_mm=target_deepest)
-        if abs(target_deepest - source_deepest) > CONTACT_DEPTH_TOLERANCE * max(source_deepest, target_deepest):
-            if indenters is None:
-                raise ValueError(f"{name}: compensation 'contact' needs the indenters' meshes")
-            spec = _pad_spec(attrs)
-            cal_depth = np.asarray(target_calibration["depth"], float)
-            punch = contact_areas(indenters, [attrs["indenter"]], [0], [0], [(0.0, 0.0)],
-                                  [float(cal_depth.max())], spec)[0]
-            shift = np.asarray(translated["shift"], float)
-            touchdown = np.asarray(translated["position"], float)[:, :2] - shift
-            area = contact_areas(indenters, translated["indenters"], translated["indenter_id"],
-                                 translated["contact_id"], touchdown, target_depth, spec)
-            stiffness = shear_stiffness(target_calibration)
-            mu = attrs.get("mu")
-            comp[:, :2] = contact_shear(shift, area, comp[:, 2], stiffness=stiffness, punch_area=punch,
-                                        mu=None if mu is None else float(mu))
-            contact.update(applied=True, stiffness_n_per_mm=stiffness, punch_area_mm2=float(punch),
-                           mu=None if mu is None else float(mu),
-                           area_mm2={"mean": float(area.mean()), "max": float(area.max())})
-    return comp.astype(np.float32), k, (src_curves, tgt_curves), contact
-
 SPLICE_MODES = ("none", "replace", "mix")
 
 
@@ -400,8 +308,7 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
     """Nodes `transfer_seed[seed]` and `hetero_seed[source,target,seed]`: `transfer`'s
     genforce_comp model trained again from another seed: the same translated contacts of
     `train_indenters`, the same labels (compensated with the curves, mode and depth ratio
-    stored in `transfer`'s attrs; read from its `labels` where it stored them) and the same
-    two-stage schedule.  Models of several seeds
+    stored in `transfer`'s attrs) and the same two-stage schedule.  Models of several seeds
     differ only by chance: their mean is a steadier force reading than any one of them (the
     control study's ensemble; model_pair: transfer's (source, target), which the graph's
     templates read), and their spread is the chance in a study's figure (hetero; source,
@@ -420,9 +327,7 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
         raise ValueError(f"{name}: no translated contacts to train on")
     reference = np.asarray(translated["reference"])
     force = np.asarray(translated["force"], np.float32)
-    if "labels" in transfer:            # the labels transfer's genforce_comp trained on
-        force = _stored_labels(transfer, _frames(translated), name)
-    elif not info["compensation_identity"]:
+    if not info["compensation_identity"]:
         curves = {k: Curves.from_dict(v) for k, v in info["curves"].items()}
         force = compensate(force, np.asarray(translated["normalised_depth"], float),
                            loading_mask(np.asarray(translated["phase"])), curves["source"],
@@ -446,23 +351,6 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
                       "target": info["target"], "seed": int(seed), "history": kept, "align": aligned,
                       "spliced": spliced},
             "timing": timing}
-
-
-def _frames(art: Mapping) -> np.ndarray:
-    """The frame ids of an artifact's rows (its row numbers where it has none)."""
-    return np.asarray(art["frame"]) if "frame" in art else np.arange(len(art["force"]))
-
-
-def _stored_labels(transfer: Mapping, frames, name: str) -> np.ndarray:
-    """transfer's stored labels (N,3) float32 of the given translated frames, in their order."""
-    stored = np.asarray(transfer["label_frame"])
-    order = np.argsort(stored, kind="stable")
-    at = np.searchsorted(stored, frames, sorter=order)
-    at = order[np.minimum(at, stored.size - 1)]
-    if not np.array_equal(stored[at], frames):
-        raise ValueError(f"{name}: the transfer's stored labels do not cover these frames "
-                         "(a transfer of another translation?)")
-    return np.asarray(transfer["labels"], np.float32)[at]
 
 
 def _depth_ratio(mode: str, source_depth, target_markers, name: str) -> float:
@@ -531,8 +419,8 @@ def _test_set(art, test_indenters):
 
 
 def compensated_test_labels(source_art, transfer_art, test_indenters, target_frames):
-    """(N,3) the source's test-contact labels compensated as transfer_art compensated (its
-    stored labels; older artifacts: its recorded curves, mode and depth ratio), in the order of the target's test frames; None when the frames are
+    """(N,3) the source's test-contact labels compensated with transfer_art's recorded curves,
+    mode and depth ratio, in the order of the target's test frames; None when the frames are
     not location-paired (no `frame` labels, or they differ) or the transfer records no curves."""
     from stages.force.compensation import Curves, compensate, loading_mask
     attrs = attrs_of(transfer_art)
@@ -541,8 +429,6 @@ def compensated_test_labels(source_art, transfer_art, test_indenters, target_fra
     rows = np.concatenate([np.arange(a, b) for a, b in contact_runs(source_art, test_indenters)])
     if not np.array_equal(np.asarray(source_art["frame"])[rows], target_frames):
         return None
-    if "labels" in transfer_art:
-        return _stored_labels(transfer_art, np.asarray(source_art["frame"])[rows], "labels_comp")
     curves = attrs["curves"]
     return compensate(np.asarray(source_art["force"], np.float32)[rows],
                       np.asarray(source_art["normalised_depth"], float)[rows],
