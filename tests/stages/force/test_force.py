@@ -379,6 +379,22 @@ def test_transfer_seed_reproduces_transfer_and_mean_predictor(nodes_out, skins, 
     for k, v in stiffer["genforce_comp"].items():
         np.testing.assert_array_equal(again["genforce_comp"][k], v)
     assert again["attrs"]["seed"] == 0 and (again["attrs"]["source"], again["attrs"]["target"]) == ("B", "A")
+    # the labels transfer stored (every translated frame's) give the same model; they are what it reads
+    stored = {**transfer, "labels": stiffer["labels"], "labels_real": stiffer["labels_real"],
+              "label_frame": stiffer["label_frame"]}
+    np.testing.assert_array_equal(stiffer["labels_real"], stiffer["labels"])     # mode "normal"
+    assert stiffer["labels"].shape == skins["A"]["force"].shape
+    np.testing.assert_array_equal(stiffer["label_frame"], skins["A"]["frame"])
+    again = fit_transfer_seed(transfer=stored, translated=skins["A"], seed=0, finetune_steps=0, **kw)
+    for k, v in stiffer["genforce_comp"].items():
+        np.testing.assert_array_equal(again["genforce_comp"][k], v)
+    halved = fit_transfer_seed(transfer={**stored, "labels": stiffer["labels"] / 2,
+                                         "labels_real": stiffer["labels"] / 2}, translated=skins["A"],
+                               seed=0, finetune_steps=0, **kw)
+    assert any(not np.array_equal(v, halved["genforce_comp"][k]) for k, v in again["genforce_comp"].items())
+    with pytest.raises(ValueError, match="stored labels do not cover these frames"):
+        fit_transfer_seed(transfer={**stored, "label_frame": stiffer["label_frame"] + 1000},
+                          translated=skins["A"], seed=0, finetune_steps=0, **kw)
     # the identity pair (finetune stage included) too
     again = fit_transfer_seed(transfer={"attrs": same["attrs"]}, translated=skins["B"], seed=0,
                               finetune_steps=2, **kw)
@@ -764,3 +780,149 @@ def test_fit_transfer_splices_the_paired_target_frames(skins, tiny_config):
         np.testing.assert_array_equal(seed["genforce_comp"][k], v)
     with pytest.raises(InputError, match=r"transfer\[B->A\]: splice True is not one of \('none', 'replace', 'mix'\)"):
         fit_transfer(translated=translated, target_markers=target, splice=True, checkpoint="/nonexistent/x", **kw)
+
+
+# ---------------------------------------------------------------------------- contact shear
+
+def _mesh_art(names):
+    """An `indenters` artifact's layout (meshes/<name>/vertices, faces) as a flat mapping."""
+    from stages.sim.indenters import indenter_set
+    meshes = indenter_set(names)["meshes"]
+    return {f"meshes/{n}/{k}": v for n, m in meshes.items() for k, v in m.items()}
+
+
+def _stick_calibration(stiffness=0.3, depth_mm=2.0, mu=0.8, m=4):
+    """A calibration with a shear leg along +x: F_x = stiffness * shift (N/mm), and the attrs
+    of a flat 30 mm pad on a 0.1 mm grid pressed by calib_punch to depth_mm."""
+    d, f, load, phase = _sheared_calibration(1.0, 0.1, m=m)
+    shift = np.zeros((d.size, 2))
+    j = np.r_[np.arange(1, m + 1), np.arange(m - 1, -1, -1)] / m
+    shift[phase != 0, 0] = np.r_[j, np.zeros(int(np.sum(phase == 3)))][: int(np.sum(phase != 0))]
+    shift[phase == 3] = 0.0
+    f = f.copy()
+    f[(phase == 1) | (phase == 2), 0] = stiffness * shift[(phase == 1) | (phase == 2), 0]
+    f[(phase == 1) | (phase == 2), 1] = 0.0
+    return {"normalised_depth": d, "force": f, "loading": load, "phase": phase, "shift": shift,
+            "depth": d * depth_mm,
+            "attrs": {"max_depth_mm": depth_mm, "spacing_mm": 0.1, "pad_mm": [30.0, 30.0],
+                      "curvature_radius_mm": 0.0, "indenter": "calib_punch", "mu": mu}}
+
+
+def test_shear_stiffness_and_contact_shear():
+    from stages.force.compensation import contact_shear, shear_stiffness
+    assert shear_stiffness(_stick_calibration(0.3)) == pytest.approx(0.3)
+    with pytest.raises(ValueError, match="no shear leg"):
+        shear_stiffness(_calibration_art(1.0))
+    shift = np.array([[0.5, 0.0], [0.0, -1.0], [1.0, 1.0], [1.0, 0.0]])
+    # contact radius 1x, 2x (4x the area), 1x, 0 (no contact): F = k sqrt(A / A_p) shift
+    area, normal = np.array([12.0, 48.0, 12.0, 0.0]), np.array([-10.0, -10.0, -10.0, -10.0])
+    free = contact_shear(shift, area, normal, stiffness=0.3, punch_area=12.0)
+    np.testing.assert_allclose(free, [[0.15, 0.0], [0.0, -0.6], [0.3, 0.3], [0.0, 0.0]])
+    # capped at mu |Fz| = 0.4 N: the third frame (0.42 N) slides along its own direction
+    capped = contact_shear(shift, area, np.full(4, -1.0), stiffness=0.3, punch_area=12.0, mu=0.4)
+    np.testing.assert_allclose(capped, [[0.15, 0.0], [0.0, -0.4], [0.4 / np.sqrt(2)] * 2, [0.0, 0.0]])
+    with pytest.raises(ValueError, match="calibration contact's area must be positive"):
+        contact_shear(shift, area, normal, stiffness=0.3, punch_area=0.0)
+    with pytest.raises(ValueError, match=r"must be \(N,2\), \(N,\), \(N,\)"):
+        contact_shear(shift[:, :1], area, normal, stiffness=0.3, punch_area=12.0)
+
+
+def test_contact_areas_match_the_indenters_geometry():
+    """The rigid overlap with a flat pad: a 4 mm flat punch touches its whole face at any depth,
+    a sphere of radius 4 mm the disc of radius sqrt(2 R d - d^2)."""
+    from stages.force.nodes import _pad_spec, contact_areas
+    spec = _pad_spec(_stick_calibration()["attrs"])
+    assert spec["grid"] == [301, 301]
+    depth = np.array([0.1, 0.5, 1.0, 0.1, 0.5, 1.0])
+    area = contact_areas(_mesh_art(["sphere", "calib_punch"]), ["sphere", "calib_punch"],
+                         [0, 0, 0, 1, 1, 1], [0, 0, 0, 1, 1, 1], np.zeros((6, 2)), depth, spec)
+    hertz = np.pi * (2 * 4.0 * depth[:3] - depth[:3] ** 2)
+    np.testing.assert_allclose(area[:3], hertz, rtol=0.05)
+    np.testing.assert_allclose(area[3:], np.pi * 2.0 ** 2, rtol=0.03)
+
+
+def _contact_translated(depth_mm):
+    """Two contacts (sphere, then calib_punch) of 6 frames each: pressed to depth_mm in 3 steps
+    (phase 0), sheared 1 mm along +y (phase 1), released (phase 3); normalised depth = depth /
+    depth_mm; F_z = -2 N per normalised depth, F_y = 0.5 N per mm of shift (a sliding source)."""
+    nd = np.array([1 / 3, 2 / 3, 1.0, 1.0, 1.0, 0.5])
+    phase = np.array([0, 0, 0, 1, 1, 3], np.int8)
+    shift = np.zeros((6, 2))
+    shift[3:5, 1] = [0.5, 1.0]
+    nd, phase, shift = np.tile(nd, 2), np.tile(phase, 2), np.tile(shift, (2, 1))
+    force = np.c_[np.zeros(12), 0.5 * shift[:, 1], -2.0 * nd].astype(np.float32)
+    position = np.c_[shift + np.array([1.0, -1.0]), -nd * depth_mm]
+    return {"force": force, "normalised_depth": nd, "depth": nd * depth_mm, "phase": phase,
+            "shift": shift, "position": position, "contact_id": np.repeat([0, 1], 6),
+            "indenter_id": np.repeat([0, 1], 6), "indenters": np.array(["sphere", "calib_punch"], object),
+            "frame": np.arange(12)}
+
+
+def test_transfer_labels_contact_mode():
+    """Across collection depths (source 1 mm, target 3 mm) mode "contact" labels the target's
+    own frames' shear with its sticking contact, the translations' as "axes"; at one depth it
+    is mode "axes" bit for bit."""
+    from stages.force.compensation import contact_shear
+    from stages.force.nodes import _pad_spec, contact_areas, transfer_labels
+    meshes = _mesh_art(["sphere", "calib_punch"])
+    src = _stick_calibration(0.5, depth_mm=1.0, mu=0.5)
+    tgt = _stick_calibration(0.2, depth_mm=3.0, mu=0.9)
+    translated = _contact_translated(1.0)
+    kw = dict(depth_mode="paired", target_markers={"normalised_depth": translated["normalised_depth"]},
+              indenters=meshes, name="t")
+    axes, axes_real, k, _, info = transfer_labels(translated, src, tgt, mode="axes", **kw)
+    assert k == 1.0 and info == {"applied": False} and np.array_equal(axes_real, axes)
+    plain, labels, _, _, info = transfer_labels(translated, src, tgt, mode="contact", **kw)
+    np.testing.assert_array_equal(plain, axes)        # the translations' labels: as axes
+    assert info["applied"] and info["source_depth_mm"] == 1.0 and info["target_depth_mm"] == 3.0
+    assert info["stiffness_n_per_mm"] == pytest.approx(0.2) and info["mu"] == 0.9
+    assert info["punch_area_mm2"] == pytest.approx(np.pi * 4.0, rel=0.03)
+    np.testing.assert_array_equal(labels[:, 2], axes[:, 2])         # the normal labels: as axes
+    spec = _pad_spec(tgt["attrs"])
+    area = contact_areas(meshes, translated["indenters"], translated["indenter_id"], translated["contact_id"],
+                         np.tile([1.0, -1.0], (12, 1)), translated["normalised_depth"] * 3.0, spec)
+    want = contact_shear(translated["shift"], area, axes[:, 2], stiffness=0.2,
+                         punch_area=info["punch_area_mm2"], mu=0.9)
+    np.testing.assert_allclose(labels[:, :2], want, rtol=1e-6)
+    # the sphere pressed 3 mm: a contact radius sqrt(15) = 3.9 mm against the punch's 2 mm
+    assert labels[4, 1] == pytest.approx(0.2 * np.sqrt(15.0) / 2.0, rel=0.05)
+    assert labels[10, 1] == pytest.approx(0.2, rel=0.02)               # the punch: the calibration's
+    assert np.all(labels[[0, 1, 2, 5, 6, 7, 8, 11], :2] == 0)          # no shift, no shear
+    same, same_real, _, _, info = transfer_labels(translated, src, _stick_calibration(0.2, depth_mm=1.0),
+                                                  mode="contact", **kw)
+    assert info["applied"] is False and np.array_equal(same_real, same)
+    np.testing.assert_array_equal(same, transfer_labels(translated, src, _stick_calibration(0.2, depth_mm=1.0),
+                                                        mode="axes", **kw)[0])
+    with pytest.raises(ValueError, match="t: compensation 'contact' needs the indenters' meshes"):
+        transfer_labels(translated, src, tgt, mode="contact", **{**kw, "indenters": None})
+    with pytest.raises(ValueError, match=r"needs the target calibration's attrs \['spacing_mm'\]"):
+        bad = dict(tgt, attrs={k: v for k, v in tgt["attrs"].items() if k != "spacing_mm"})
+        transfer_labels(translated, src, bad, mode="contact", **kw)
+    with pytest.raises(ValueError, match="compensation mode 'stick' is not one of"):
+        transfer_labels(translated, src, tgt, mode="stick", **kw)
+
+
+def test_sequence_labels_put_the_real_labels_on_the_spliced_frames(skins):
+    """The target's own frames spliced into a sequence carry the real labels, the translations
+    the translated labels: every sequence under "replace", the second copy under "mix"."""
+    from stages.force.nodes import _paired_rows, _sequence_labels
+    n = len(skins["A"]["force"])
+    translated = dict(skins["A"], paired=np.arange(n) % 3 == 0)
+    target = dict(skins["B"], paired=translated["paired"])
+    train = ["sphere", "prism", "cone"]
+    runs = contact_runs(translated, train)
+    comp = np.asarray(translated["force"], np.float32)
+    real = comp + 100.0
+    _, rows = _paired_rows(translated, target, train, 5)
+    marked = np.zeros(len(comp), bool)
+    marked[rows[0]] = True
+    assert 0 < marked.sum() <= 5
+    replace = _sequence_labels(comp, real, translated, runs, runs, target, train, 5, "replace")
+    for (a, b), y in zip(runs, replace):
+        np.testing.assert_array_equal(y, np.where(marked[a:b, None], real[a:b], comp[a:b]))
+    mix = _sequence_labels(comp, real, translated, runs, runs + runs, target, train, 5, "mix")
+    for y, (a, b) in zip(mix[:len(runs)], runs):
+        np.testing.assert_array_equal(y, comp[a:b])
+    np.testing.assert_array_equal(np.concatenate(mix[len(runs):]), np.concatenate(replace))
+    none = _sequence_labels(comp, real, translated, runs, runs, target, train, 5, "none")
+    np.testing.assert_array_equal(np.concatenate(none), np.concatenate([comp[a:b] for a, b in runs]))
