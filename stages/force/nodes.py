@@ -179,7 +179,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
                  source: str, target: str, config: Mapping, steps: int, batch_size: int, lr: float,
                  seed: int, finetune_steps: int, train_indenters: Sequence[str] | None = None,
                  compensation: str = "normal", compensation_depth: str = "shared",
-                 target_markers: Mapping | None = None, indenters: Mapping | None = None,
+                 target_markers: Mapping | None = None,
                  source_spec: Mapping | None = None, target_spec: Mapping | None = None,
                  align: str = "none", align_pairs: int = 0, splice: str = "none",
                  checkpoint: str | None = None) -> dict:
@@ -194,12 +194,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     lr 0.1 then 1e-3; 0 skips it).  When the two calibrations give the same curves (same
     material) the compensation is the identity and genforce_comp is genforce's weights, not
     retrained (attrs compensation_identity true).  `compensation` is the mode of
-    stages.force.compensation: "normal" (the paper's), "axes" (shear gains too) or "contact"
-    ("axes", but the target's own frames spliced in are labelled with the target's sticking
-    contact where the two collections press to different depths: transfer_labels, with the
-    `indenters` meshes).  The labels are stored (`labels` for the translations, `labels_real`
-    for the target's own frames, `label_frame` the translated frames they label), and the
-    seeds train on them.
+    stages.force.compensation: "normal" (the paper's) or "axes" (shear gains too).
     `compensation_depth`: "shared" evaluates both curves at the source's normalised depth;
     "paired" evaluates the target's at the target's own normalised depth of the paired frame,
     k times the source's (compensation.depth_ratio, from the normalised depths of the source's
@@ -214,12 +209,15 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     engine's): an interrupted node re-runs none of its finished fits and resumes the one it
     was in (stages.force.train.Checkpoint).
     """
-    from stages.force.compensation import curves_figure, label_scale, loading_mask, shear_ratio
+    from stages.force.compensation import (compensate, curves_figure, curves_from_calibration,
+                                           label_scale, loading_mask, shear_ratio)
     from stages.force.model import to_arrays
     from stages.force.train import ContactSequence, fit_two_stage, loss_figure, make_sequences
     name = f"transfer[{source}->{target}]"
     _check_align(align, target_markers, name)
     model_cfg, train = _split_config(config)
+    src_curves = curves_from_calibration(source_calibration)
+    tgt_curves = curves_from_calibration(target_calibration)
     runs = contact_runs(translated, train_indenters)
     if not runs:
         raise ValueError(f"fit_transfer[{source}->{target}]: no translated contacts to train on")
@@ -227,11 +225,9 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     force = np.asarray(translated["force"], np.float32)
     depth = np.asarray(translated["normalised_depth"], float)
     loading = loading_mask(np.asarray(translated["phase"]))
-    comp, real, k, (src_curves, tgt_curves), contact = transfer_labels(
-        translated, source_calibration, target_calibration, mode=compensation,
-        depth_mode=compensation_depth, target_markers=target_markers, indenters=indenters,
-        name=f"fit_transfer[{source}->{target}]")
-    identity = src_curves == tgt_curves and k == 1.0 and not contact["applied"]
+    k = _depth_ratio(compensation_depth, depth, target_markers, f"fit_transfer[{source}->{target}]")
+    identity = src_curves == tgt_curves and k == 1.0
+    comp = compensate(force, depth, loading, src_curves, tgt_curves, mode=compensation, depth_ratio=k)
     images, seq_runs, spliced = _training_images(translated, runs, target_markers, train_indenters,
                                                  align_pairs, splice, name)
     seqs = make_sequences(images, [force[a:b] for a, b in seq_runs], reference, model_cfg)
@@ -245,9 +241,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     histories = {"genforce": hist}
     models = {"genforce": genforce, "genforce_comp": genforce}
     if not identity:
-        labels = _sequence_labels(comp, real, translated, runs, seq_runs, target_markers,
-                                  train_indenters, align_pairs, splice)
-        comp_seqs = [ContactSequence(s.inputs, y) for s, y in zip(seqs, labels)]
+        comp_seqs = [ContactSequence(s.inputs, comp[a:b]) for s, (a, b) in zip(seqs, seq_runs)]
         genforce_comp, histories["genforce_comp"] = fit_two_stage(
             comp_seqs, model_cfg, desc=f"{name} genforce_comp", checkpoint=ckpt,
             label="genforce_comp", **kwargs)
@@ -268,10 +262,8 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
                                               target: (target_calibration, tgt_curves)},
                                              f"compensation {source} -> {target}")}
     return {"genforce": weights, "genforce_comp": weights_comp,
-            "labels": comp, "labels_real": real, "label_frame": _frames(translated),
             "attrs": {"config": genforce.config, "train": train, "source": source, "target": target,
                       "compensation_identity": bool(identity), "compensation": compensation,
-                      "contact_shear": contact,
                       "compensation_depth": compensation_depth, "depth_ratio": k, "align": aligned,
                       "spliced": spliced,
                       "shear_ratio": shear_ratio(src_curves, tgt_curves, compensation, k),
@@ -287,135 +279,6 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
 
 
 DEPTH_MODES = ("shared", "paired")
-# collections whose deepest presses differ by more than this fraction press an indenter into
-# differently shaped contacts: mode "contact" labels the target's own frames' shear there
-CONTACT_DEPTH_TOLERANCE = 0.1
-
-
-def _frames(art: Mapping) -> np.ndarray:
-    """The frame ids of an artifact's rows (its row numbers where it has none)."""
-    return np.asarray(art["frame"]) if "frame" in art else np.arange(len(art["force"]))
-
-
-def _stored_labels(transfer: Mapping, key: str, frames, name: str) -> np.ndarray:
-    """transfer's stored labels `key` (N,3) float32 of the given translated frames, in their order."""
-    stored = np.asarray(transfer["label_frame"])
-    order = np.argsort(stored, kind="stable")
-    at = order[np.minimum(np.searchsorted(stored, frames, sorter=order), stored.size - 1)]
-    if not np.array_equal(stored[at], frames):
-        raise ValueError(f"{name}: the transfer's stored labels do not cover these frames "
-                         "(a transfer of another translation?)")
-    return np.asarray(transfer[key], np.float32)[at]
-
-
-def _sequence_labels(comp: np.ndarray, real: np.ndarray, translated: Mapping, runs, seq_runs,
-                     target_markers: Mapping | None, indenters, pairs: int, splice: str) -> list:
-    """The labels of each training sequence (_training_images' seq_runs): `comp`'s rows, and
-    `real`'s at the rows whose image is the target's own frame (splice_paired's rows: in every
-    sequence under "replace", in the second copy of each contact under "mix")."""
-    out = [comp[a:b] for a, b in seq_runs]
-    if splice == "none" or real is comp or np.array_equal(real, comp):
-        return out
-    _, rows = _paired_rows(translated, target_markers, indenters, pairs)
-    for i in range(0 if splice == "replace" else len(runs), len(seq_runs)):
-        a, b = seq_runs[i]
-        inside = rows[0][(rows[0] >= a) & (rows[0] < b)]
-        if inside.size:
-            out[i] = comp[a:b].copy()
-            out[i][inside - a] = real[inside]
-    return out
-
-
-def _pad_spec(attrs: Mapping) -> dict:
-    """The contact geometry of a calibrated sensor from its calibrate artifact's attrs: pad,
-    curvature and solver spacing, on an odd grid covering the pad (its centre a cell centre)."""
-    spacing = float(attrs["spacing_mm"])
-    pad = [float(v) for v in attrs["pad_mm"]]
-    grid = [int(np.ceil(p / spacing)) // 2 * 2 + 1 for p in (pad[1], pad[0])]
-    return {"grid": grid, "spacing_mm": spacing, "pad_mm": pad,
-            "curvature_radius_mm": float(attrs["curvature_radius_mm"])}
-
-
-def contact_areas(indenters: Mapping, names, indenter_id, contact_id, touchdown, depth,
-                  spec: Mapping) -> np.ndarray:
-    """(N,) mm^2: the rigid indenter's overlap with the undeformed pad of `spec` (_pad_spec) at
-    each frame's depth, the indenter's tip over its contact's touchdown point (N,2) mm: the
-    cells whose surface gap to the indenter is below the depth."""
-    from stages.sim.indenters import mesh_from_artifact
-    from stages.sim.sensors import contact_height, surface_gap
-    gap, cell = surface_gap(spec), float(spec["spacing_mm"]) ** 2
-    names = np.asarray(names).astype(str)
-    contact_id, indenter_id = np.asarray(contact_id), np.asarray(indenter_id)
-    depth, touchdown = np.asarray(depth, float), np.asarray(touchdown, float)
-    meshes, out = {}, np.zeros(depth.size)
-    for c in np.unique(contact_id):
-        rows = np.flatnonzero(contact_id == c)
-        name = str(names[indenter_id[rows[0]]])
-        if name not in meshes:
-            meshes[name] = mesh_from_artifact(indenters, name)
-        height = contact_height(meshes[name], spec, touchdown[rows[0]], gap)
-        levels = np.sort(height[np.isfinite(height)].ravel())
-        out[rows] = np.searchsorted(levels, depth[rows], side="left") * cell
-    return out
-
-
-def transfer_labels(translated: Mapping, source_calibration: Mapping, target_calibration: Mapping, *,
-                    mode: str, depth_mode: str, target_markers: Mapping | None,
-                    indenters: Mapping | None, name: str):
-    """(labels, real labels (N,3) float32, depth ratio k, (source Curves, target Curves), contact
-    attrs) of every translated frame.  labels, for the translations: the source's compensated to
-    the target (compensation.compensate in `mode`, at depth_mode's k).  real labels, for the
-    target's own frames at the same locations (spliced in; _sequence_labels): the same, but in
-    mode "contact", where the two collections press to different depths, with the target's
-    sticking-contact shear (compensation.contact_shear): the target's depth at a paired frame
-    is k times the source's normalised depth times the target calibration's max_depth_mm, its
-    contact the indenter's overlap with the target's pad there (contact_areas), its stiffness
-    the calibration's shear leg (shear_stiffness, at the calibration indenter's contact),
-    capped at the calibration's friction mu (attrs; none recorded: no cap) times the
-    compensated |Fz|."""
-    from stages.force.compensation import (compensate, contact_shear, curves_from_calibration,
-                                           loading_mask, shear_stiffness)
-    src_curves = curves_from_calibration(source_calibration)
-    tgt_curves = curves_from_calibration(target_calibration)
-    force = np.asarray(translated["force"], np.float32)
-    depth = np.asarray(translated["normalised_depth"], float)
-    loading = loading_mask(np.asarray(translated["phase"]))
-    k = _depth_ratio(depth_mode, depth, target_markers, name)
-    comp = compensate(force, depth, loading, src_curves, tgt_curves, mode=mode, depth_ratio=k)
-    real, contact = comp, {"applied": False}
-    if mode == "contact":
-        attrs = attrs_of(target_calibration)
-        missing = [key for key in ("max_depth_mm", "spacing_mm", "pad_mm", "curvature_radius_mm", "indenter")
-                   if key not in attrs]
-        if missing:
-            raise ValueError(f"{name}: compensation 'contact' needs the target calibration's "
-                             f"attrs {missing}")
-        target_depth = k * depth * float(attrs["max_depth_mm"])
-        source_deepest = float(np.max(np.asarray(translated["depth"], float)))
-        target_deepest = float(np.max(target_depth))
-        contact.update(source_depth_mm=source_deepest, target_depth_mm=target_deepest)
-        if abs(target_deepest - source_deepest) > CONTACT_DEPTH_TOLERANCE * max(source_deepest, target_deepest):
-            if indenters is None:
-                raise ValueError(f"{name}: compensation 'contact' needs the indenters' meshes")
-            spec = _pad_spec(attrs)
-            cal_depth = np.asarray(target_calibration["depth"], float)
-            punch = contact_areas(indenters, [attrs["indenter"]], [0], [0], [(0.0, 0.0)],
-                                  [float(cal_depth.max())], spec)[0]
-            shift = np.asarray(translated["shift"], float)
-            touchdown = np.asarray(translated["position"], float)[:, :2] - shift
-            area = contact_areas(indenters, translated["indenters"], translated["indenter_id"],
-                                 translated["contact_id"], touchdown, target_depth, spec)
-            stiffness = shear_stiffness(target_calibration)
-            mu = attrs.get("mu")
-            real = comp.copy()
-            real[:, :2] = contact_shear(shift, area, comp[:, 2], stiffness=stiffness, punch_area=punch,
-                                        mu=None if mu is None else float(mu))
-            contact.update(applied=True, stiffness_n_per_mm=stiffness, punch_area_mm2=float(punch),
-                           mu=None if mu is None else float(mu),
-                           area_mm2={"mean": float(area.mean()), "max": float(area.max())})
-    return comp.astype(np.float32), real.astype(np.float32), k, (src_curves, tgt_curves), contact
-
-
 SPLICE_MODES = ("none", "replace", "mix")
 
 
@@ -445,8 +308,7 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
     """Nodes `transfer_seed[seed]` and `hetero_seed[source,target,seed]`: `transfer`'s
     genforce_comp model trained again from another seed: the same translated contacts of
     `train_indenters`, the same labels (compensated with the curves, mode and depth ratio
-    stored in `transfer`'s attrs; its stored `labels` and `labels_real` where it has them) and
-    the same two-stage schedule.  Models of several seeds
+    stored in `transfer`'s attrs) and the same two-stage schedule.  Models of several seeds
     differ only by chance: their mean is a steadier force reading than any one of them (the
     control study's ensemble; model_pair: transfer's (source, target), which the graph's
     templates read), and their spread is the chance in a study's figure (hetero; source,
@@ -465,12 +327,7 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
         raise ValueError(f"{name}: no translated contacts to train on")
     reference = np.asarray(translated["reference"])
     force = np.asarray(translated["force"], np.float32)
-    real = None
-    if "labels" in transfer:            # the labels transfer's genforce_comp trained on
-        frames = _frames(translated)
-        force = _stored_labels(transfer, "labels", frames, name)
-        real = _stored_labels(transfer, "labels_real", frames, name)
-    elif not info["compensation_identity"]:
+    if not info["compensation_identity"]:
         curves = {k: Curves.from_dict(v) for k, v in info["curves"].items()}
         force = compensate(force, np.asarray(translated["normalised_depth"], float),
                            loading_mask(np.asarray(translated["phase"])), curves["source"],
@@ -478,9 +335,7 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
                            depth_ratio=float(info["depth_ratio"]))
     images, seq_runs, spliced = _training_images(translated, runs, target_markers, train_indenters,
                                                  align_pairs, splice, name)
-    labels = _sequence_labels(force, force if real is None else real, translated, runs, seq_runs,
-                              target_markers, train_indenters, align_pairs, splice)
-    seqs = make_sequences(images, labels, reference, model_cfg)
+    seqs = make_sequences(images, [force[a:b] for a, b in seq_runs], reference, model_cfg)
     ckpt = _checkpoint(checkpoint)
     model, history = fit_two_stage(seqs, model_cfg, steps=int(steps), finetune_steps=int(finetune_steps),
                                    batch_size=int(batch_size), lr=float(lr), seed=int(seed),
