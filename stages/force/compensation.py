@@ -28,6 +28,29 @@ collections reach different normalised depths (shear_ratio: a sticking shear's f
 grow with depth, the punch's normal force does, so a gain read deeper is smaller).  Without a
 shear leg on both sides "axes" is "normal".
 
+Contact (mode "contact"): "axes" labels for the translations, and a second set for the
+target's own frames at the same locations, which a transfer's shear read-out is calibrated
+against (stages.force.nodes.shear_readout, `force.readout`).  Where the target's collection
+presses deeper than the source's (TacTip's dome 4.5 mm, the flat pads 1 mm) the source's shear
+says little about the target's: a GelSight or uSkin pad slides under most presses (|F_xy| /
+|F_z| at its friction coefficient, 0.55-0.60) while TacTip's deep contact sticks, and sticks
+harder under a rounded face than a flat one (Mindlin: a sticking contact of radius a sheared
+by delta carries 8 G* a delta, while its normal force is 2 a E* d under a punch, 4/3 a E* d
+under a sphere and a E* d under a cone).  The target's own sticking contact
+(:func:`contact_shear`) gives its shear instead: the calibration's shear leg gives the
+stiffness per mm of shift at the punch's contact (:func:`shear_stiffness`), scaled by the
+paired frame's contact radius over the punch's, sqrt(area / punch area), from the indenter's
+geometry pressed to the target's depth (stages.force.nodes.contact_labels), and capped at the
+target's friction times its compensated normal force (sliding).  On the twins that is
+TacTip's shear at R2 0.97/0.97 (Fx/Fy, unseen indenters; "axes" 0.61/0.63) from GelSight and
+0.97/0.98 from uSkin.  Those labels do not train the regressor: a translated frame keeps much
+of the source's deformation, and the label it needs is the force under the deformation it
+shows, which "axes" gives (every translated frame labelled by the contact model: GelSight ->
+TacTip R2 0.78/0.73/0.85 -> 0.77/0.56/0.80).  Where the two press as deep the target's frames
+carry the "axes" labels; where the target presses shallower (TacTip -> a flat pad) its pad
+slides partway under a contact that sticks on the source, which neither set labels well
+(the contact model R2 0.69/0.71, "axes" 0.37/0.32), so they carry none and are not read.
+
 Depth: each curve is a function of its own sensor's normalised depth (depth / the sensor's
 calibration d_max).  A location-paired frame presses every sensor to the same fraction of its
 collection depth, which is the same normalised depth only when each sensor's d_max is its
@@ -65,7 +88,7 @@ import numpy as np
 
 PHASES = (0, 1, 2, 3)          # press, shear out, shear back, release
 UNLOADING_PHASES = (3,)
-MODES = ("normal", "axes")
+MODES = ("normal", "axes", "contact")
 
 
 @dataclass(frozen=True)
@@ -184,8 +207,8 @@ def label_scale(normalised_depth, loading, source: Curves, target: Curves, eps: 
 
 
 def shear_ratio(source: Curves, target: Curves, mode: str, depth_ratio: float = 1.0) -> float:
-    """The extra factor on Fx, Fy: gain_target / gain_source / depth_ratio in mode "axes" when
-    both calibrations have a shear leg, else 1 (the paper's "normal" mode).  Each gain is
+    """The extra factor on Fx, Fy: gain_target / gain_source / depth_ratio in modes "axes" and
+    "contact" when both calibrations have a shear leg, else 1 (the paper's "normal" mode).  Each gain is
     measured at its calibration's d_max; a paired frame at the source's normalised depth d
     meets the target at depth_ratio * d, and a shear that sticks keeps its force while the
     flat punch's normal force grows with depth (Mindlin against Sneddon), so a gain read at
@@ -200,6 +223,51 @@ def shear_ratio(source: Curves, target: Curves, mode: str, depth_ratio: float = 
     if not depth_ratio > 0:
         raise ValueError(f"depth_ratio {depth_ratio} must be positive")
     return target.shear_gain / source.shear_gain / float(depth_ratio)
+
+
+def shear_stiffness(calibration: Mapping) -> float:
+    """k (N per mm of shift): the least-squares slope of the shear force against the shift over
+    a calibration's shear-out frames (phase 1), signed as the twin's force is."""
+    if "phase" not in calibration or "shift" not in calibration:
+        raise ValueError("shear_stiffness: the calibration has no shear leg (phase and shift): "
+                         "compensation 'contact' needs calibration_trajectory.shear_mm > 0")
+    out = np.asarray(calibration["phase"]) == 1
+    shift = np.asarray(calibration["shift"], float)[out]
+    force = np.asarray(calibration["force"], float)[out, :2]
+    moved = float(np.sum(shift * shift))
+    if not moved > 0:
+        raise ValueError("shear_stiffness: the calibration's shear leg does not move (no shear-out "
+                         "frames with a shift): compensation 'contact' needs calibration_trajectory.shear_mm > 0")
+    k = float(np.sum(force * shift) / moved)
+    if not (np.isfinite(k) and k != 0):
+        raise ValueError(f"shear_stiffness: the shear leg carries no shear force (k = {k})")
+    return k
+
+
+def contact_shear(shift, area, normal, *, stiffness: float, punch_area: float,
+                  mu: float | None = None) -> np.ndarray:
+    """(N,2) the target's sticking shear force at each frame: stiffness * sqrt(area /
+    punch_area) * shift (Mindlin: the force is proportional to the contact radius, which the
+    calibration measured at the punch's area), scaled down to mu * |normal| where it would
+    exceed it (sliding; mu None: no cap).  shift (N,2) mm, area (N,) mm^2, normal (N,) N."""
+    shift = np.asarray(shift, float)
+    area = np.asarray(area, float)
+    normal = np.asarray(normal, float)
+    if shift.ndim != 2 or shift.shape[1] != 2 or area.shape != shift.shape[:1] or normal.shape != area.shape:
+        raise ValueError(f"contact_shear: shift {shift.shape}, area {area.shape} and normal "
+                         f"{normal.shape} must be (N,2), (N,), (N,)")
+    if not (np.isfinite(punch_area) and punch_area > 0):
+        raise ValueError(f"contact_shear: the calibration contact's area must be positive, got {punch_area}")
+    if np.any(area < 0):
+        raise ValueError("contact_shear: contact areas must be >= 0")
+    shear = float(stiffness) * np.sqrt(area / float(punch_area))[:, None] * shift
+    if mu is not None:
+        if not (np.isfinite(mu) and mu > 0):
+            raise ValueError(f"contact_shear: friction coefficient mu must be positive, got {mu}")
+        size = np.hypot(shear[:, 0], shear[:, 1])
+        cap = float(mu) * np.abs(normal)
+        shear *= np.where(size > cap, cap / np.maximum(size, 1e-300), 1.0)[:, None]
+    return shear
 
 
 def compensate(force, normalised_depth, loading, source: Curves, target: Curves,

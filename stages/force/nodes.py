@@ -179,10 +179,10 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
                  source: str, target: str, config: Mapping, steps: int, batch_size: int, lr: float,
                  seed: int, finetune_steps: int, train_indenters: Sequence[str] | None = None,
                  compensation: str = "normal", compensation_depth: str = "shared",
-                 target_markers: Mapping | None = None,
+                 target_markers: Mapping | None = None, indenters: Mapping | None = None,
                  source_spec: Mapping | None = None, target_spec: Mapping | None = None,
                  align: str = "none", align_pairs: int = 0, splice: str = "none",
-                 checkpoint: str | None = None) -> dict:
+                 readout: str = "none", checkpoint: str | None = None) -> dict:
     """Node `transfer[source,target]`: regressors on the source's sequences translated into the
     target's style (images; reference = the target's), trained with the source's labels
     (genforce) and with the labels compensated to the target's material (genforce_comp).
@@ -194,7 +194,14 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     lr 0.1 then 1e-3; 0 skips it).  When the two calibrations give the same curves (same
     material) the compensation is the identity and genforce_comp is genforce's weights, not
     retrained (attrs compensation_identity true).  `compensation` is the mode of
-    stages.force.compensation: "normal" (the paper's) or "axes" (shear gains too).
+    stages.force.compensation: "normal" (the paper's), "axes" (shear gains too) or "contact"
+    ("axes" labels; the target's own frames' shear, which `readout` reads, from its sticking
+    contact where it presses deeper: contact_labels, with the `indenters` meshes).
+    `readout` ("none", "shear"): after training (and the alignment), genforce_comp's shear output
+    is scaled by shear_readout's gains: how it reads the target's own frames on the
+    `align_pairs` location-paired frames against the shear they carry (_readout_labels); stored
+    as readout_frame, readout_shear and attrs shear_readout, which the seeds read.  Where the
+    compensation is the identity genforce_comp is genforce, and so is scaled too.
     `compensation_depth`: "shared" evaluates both curves at the source's normalised depth;
     "paired" evaluates the target's at the target's own normalised depth of the paired frame,
     k times the source's (compensation.depth_ratio, from the normalised depths of the source's
@@ -228,6 +235,9 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     k = _depth_ratio(compensation_depth, depth, target_markers, f"fit_transfer[{source}->{target}]")
     identity = src_curves == tgt_curves and k == 1.0
     comp = compensate(force, depth, loading, src_curves, tgt_curves, mode=compensation, depth_ratio=k)
+    read_on, readout_info = _readout_labels(readout, compensation, translated, target_calibration,
+                                            comp, k, indenters, target_markers, train_indenters,
+                                            align_pairs, name)
     images, seq_runs, spliced = _training_images(translated, runs, target_markers, train_indenters,
                                                  align_pairs, splice, name)
     seqs = make_sequences(images, [force[a:b] for a, b in seq_runs], reference, model_cfg)
@@ -249,6 +259,12 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
         models["genforce_comp"] = genforce_comp
     models, aligned = align_models(models, translated, target_markers, train_indenters, align_pairs,
                                    align, name)
+    extra = {}
+    if read_on is not None:
+        frames, rows, shear = read_on
+        readout_info["gain"] = list(shear_readout(models["genforce_comp"], target_markers, rows[1], shear))
+        scale_shear(models["genforce_comp"], readout_info["gain"])
+        extra = {"readout_frame": frames, "readout_shear": shear}
     weights = to_arrays(models["genforce"])
     weights_comp = to_arrays(models["genforce_comp"])
     if identity:
@@ -261,9 +277,10 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
                "compensation": curves_figure({source: (source_calibration, src_curves),
                                               target: (target_calibration, tgt_curves)},
                                              f"compensation {source} -> {target}")}
-    return {"genforce": weights, "genforce_comp": weights_comp,
+    return {"genforce": weights, "genforce_comp": weights_comp, **extra,
             "attrs": {"config": genforce.config, "train": train, "source": source, "target": target,
                       "compensation_identity": bool(identity), "compensation": compensation,
+                      **({"shear_readout": readout_info} if readout_info else {}),
                       "compensation_depth": compensation_depth, "depth_ratio": k, "align": aligned,
                       "spliced": spliced,
                       "shear_ratio": shear_ratio(src_curves, tgt_curves, compensation, k),
@@ -276,6 +293,31 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
                       "history": kept},
             "timing": timing,
             "figures": figures}
+
+
+def _readout_labels(readout, mode, translated, target_calibration, comp, k, indenters, target_markers,
+                    train_indenters, pairs, name):
+    """readout "shear": ((frames, rows (2,K): translated rows, target rows, shear (K,2)), attrs)
+    on the `pairs` location-paired frames of `train_indenters` (_paired_rows), the shear being
+    the labels the target's own frames there carry: contact_labels in compensation mode
+    "contact" (None where it gives none), else `comp`'s; readout "none": (None, {})."""
+    from stages.common import InputError
+    if readout not in READOUT_MODES:
+        raise InputError(f"{name}: readout {readout!r} is not one of {READOUT_MODES}")
+    if readout == "none":
+        return None, {}
+    if target_markers is None or "images" not in target_markers:
+        raise ValueError(f"{name}: readout 'shear' needs the target's own frames (target_markers)")
+    frames, rows = _paired_rows(translated, target_markers, train_indenters, pairs)
+    if mode == "contact":
+        shear, info = contact_labels(translated, target_calibration, comp, k, indenters=indenters,
+                                     rows=rows[0], name=name)
+    else:
+        shear, info = np.asarray(comp, np.float32)[rows[0], :2], {"labels": "compensated"}
+    info["pairs"] = int(len(frames))
+    if shear is None:
+        return None, info
+    return (frames, rows, shear), info
 
 
 DEPTH_MODES = ("shared", "paired")
@@ -313,8 +355,10 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
     control study's ensemble; model_pair: transfer's (source, target), which the graph's
     templates read), and their spread is the chance in a study's figure (hetero; source,
     target: the fan-out's values, which transfer's attrs hold too).  Returns genforce_comp
-    weights and attrs {config, source, target, seed, history, align, spliced}.  `align`,
-    `align_pairs`, `splice`, `target_markers` and `checkpoint`: as fit_transfer's."""
+    weights and attrs {config, source, target, seed, history, align, spliced, and shear_readout
+    where transfer's has one: this model's own gains against transfer's stored readout_shear
+    on the same frames}.  `align`, `align_pairs`, `splice`, `target_markers` and `checkpoint`:
+    as fit_transfer's."""
     from stages.force.compensation import Curves, compensate, loading_mask
     from stages.force.model import to_arrays
     from stages.force.train import fit_two_stage, make_sequences
@@ -345,12 +389,161 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
     model.set_reference(reference)
     models, aligned = align_models({"genforce_comp": model}, translated, target_markers, train_indenters,
                                    align_pairs, align, name)
+    readout = {}
+    if "readout_shear" in transfer:
+        frames, rows = _paired_rows(translated, target_markers, train_indenters, align_pairs)
+        if not np.array_equal(frames, np.asarray(transfer["readout_frame"])):
+            raise ValueError(f"{name}: the transfer's shear read-out frames are not this node's paired "
+                             "frames (another translation, indenters or align_pairs?)")
+        gains = shear_readout(models["genforce_comp"], target_markers, rows[1],
+                              np.asarray(transfer["readout_shear"], np.float32))
+        scale_shear(models["genforce_comp"], gains)
+        readout = {"shear_readout": {"gain": list(gains), "pairs": int(len(frames))}}
     kept, timing = _split_timing(history, ckpt)
     return {"genforce_comp": to_arrays(models["genforce_comp"]),
             "attrs": {"config": model.config, "train": train, "source": info["source"],
                       "target": info["target"], "seed": int(seed), "history": kept, "align": aligned,
-                      "spliced": spliced},
+                      "spliced": spliced, **readout},
             "timing": timing}
+
+
+# two collections whose deepest presses differ by more than this fraction of the deeper one
+# press an indenter into differently shaped contacts (compensation "contact": contact_labels)
+CONTACT_DEPTH_TOLERANCE = 0.1
+READOUT_GAIN_RANGE = (0.25, 4.0)
+READOUT_MODES = ("none", "shear")
+
+
+def _pad_spec(attrs: Mapping) -> dict:
+    """The contact geometry of a calibrated sensor from its calibrate artifact's attrs: pad,
+    curvature and solver spacing, on an odd grid covering the pad (its centre a cell centre)."""
+    spacing = float(attrs["spacing_mm"])
+    pad = [float(v) for v in attrs["pad_mm"]]
+    grid = [int(np.ceil(p / spacing)) // 2 * 2 + 1 for p in (pad[1], pad[0])]
+    return {"grid": grid, "spacing_mm": spacing, "pad_mm": pad,
+            "curvature_radius_mm": float(attrs["curvature_radius_mm"])}
+
+
+def contact_areas(indenters: Mapping, names, indenter_id, contact_id, touchdown, depth,
+                  spec: Mapping) -> np.ndarray:
+    """(N,) mm^2: the rigid indenter's overlap with the undeformed pad of `spec` (_pad_spec) at
+    each frame's depth, the indenter's tip over its contact's touchdown point (N,2) mm: the
+    cells whose surface gap to the indenter is below the depth."""
+    from stages.sim.indenters import mesh_from_artifact
+    from stages.sim.sensors import contact_height, surface_gap
+    gap, cell = surface_gap(spec), float(spec["spacing_mm"]) ** 2
+    names = np.asarray(names).astype(str)
+    contact_id, indenter_id = np.asarray(contact_id), np.asarray(indenter_id)
+    depth, touchdown = np.asarray(depth, float), np.asarray(touchdown, float)
+    meshes, out = {}, np.zeros(depth.size)
+    for c in np.unique(contact_id):
+        rows = np.flatnonzero(contact_id == c)
+        name = str(names[indenter_id[rows[0]]])
+        if name not in meshes:
+            meshes[name] = mesh_from_artifact(indenters, name)
+        height = contact_height(meshes[name], spec, touchdown[rows[0]], gap)
+        levels = np.sort(height[np.isfinite(height)].ravel())
+        out[rows] = np.searchsorted(levels, depth[rows], side="left") * cell
+    return out
+
+
+def contact_labels(translated: Mapping, target_calibration: Mapping, comp: np.ndarray, k: float, *,
+                   indenters: Mapping | None, rows: np.ndarray, name: str) -> tuple[np.ndarray | None, dict]:
+    """Compensation mode "contact": the shear (K,2) the target's own frames at the translated
+    frames `rows` carry, and attrs saying which (`labels`):
+
+      "contact"      the target's collection presses deeper than the source's by more than
+                     CONTACT_DEPTH_TOLERANCE of its depth: its sticking-contact shear
+                     (compensation.contact_shear; TacTip from the flat pads, R2 0.97);
+      "compensated"  the two press as deep: `comp`'s shear (the source's, compensated);
+      "none"         the target presses shallower: None (its pad slides partway under a
+                     contact that sticks on the source, which neither labels well: 0.69).
+
+    The target's depth at a frame is k times the source's normalised depth times the target
+    calibration's max_depth_mm, its contact the indenter's overlap with the target's pad there
+    (contact_areas, the `indenters` meshes), its stiffness the calibration's shear leg
+    (shear_stiffness, at the calibration indenter's contact), capped at the calibration's
+    friction mu (none recorded: no cap) times the compensated |Fz| (`comp`'s)."""
+    from stages.force.compensation import contact_shear, shear_stiffness
+    attrs = attrs_of(target_calibration)
+    if "max_depth_mm" not in attrs:
+        raise ValueError(f"{name}: compensation 'contact' needs the target calibration's attrs "
+                         "['max_depth_mm']")
+    depth = np.asarray(translated["normalised_depth"], float)
+    source_deepest = float(np.max(np.asarray(translated["depth"], float)))
+    target_deepest = float(k * np.max(depth) * float(attrs["max_depth_mm"]))
+    info = {"source_depth_mm": round(source_deepest, 6), "target_depth_mm": round(target_deepest, 6)}
+    rows = np.asarray(rows, int)
+    if source_deepest > (1.0 + CONTACT_DEPTH_TOLERANCE) * target_deepest:
+        return None, {"labels": "none", **info}
+    if target_deepest <= (1.0 + CONTACT_DEPTH_TOLERANCE) * source_deepest:
+        return np.asarray(comp, np.float32)[rows, :2], {"labels": "compensated", **info}
+    missing = [key for key in ("spacing_mm", "pad_mm", "curvature_radius_mm", "indenter") if key not in attrs]
+    if missing:
+        raise ValueError(f"{name}: compensation 'contact' needs the target calibration's attrs {missing}")
+    if indenters is None:
+        raise ValueError(f"{name}: compensation 'contact' needs the indenters' meshes")
+    spec = _pad_spec(attrs)
+    cal_depth = np.asarray(target_calibration["depth"], float)
+    punch = contact_areas(indenters, [attrs["indenter"]], [0], [0], [(0.0, 0.0)],
+                          [float(cal_depth.max())], spec)[0]
+    shift = np.asarray(translated["shift"], float)[rows]
+    touchdown = np.asarray(translated["position"], float)[rows, :2] - shift
+    area = contact_areas(indenters, translated["indenters"], np.asarray(translated["indenter_id"])[rows],
+                         np.asarray(translated["contact_id"])[rows], touchdown,
+                         k * depth[rows] * float(attrs["max_depth_mm"]), spec)
+    stiffness = shear_stiffness(target_calibration)
+    mu = attrs.get("mu")
+    shear = contact_shear(shift, area, comp[rows, 2], stiffness=stiffness, punch_area=punch,
+                          mu=None if mu is None else float(mu))
+    info.update(labels="contact", stiffness_n_per_mm=round(stiffness, 6),
+                punch_area_mm2=round(float(punch), 6), mu=None if mu is None else float(mu))
+    return shear.astype(np.float32), info
+
+
+def _target_predictions(model, target_markers: Mapping, rows: np.ndarray) -> np.ndarray:
+    """(K,3) the model's forces at the target's own frames `rows`, each read in its whole contact
+    (the GRU's state from the contact's first frame, as the studies and a control loop read)."""
+    from stages.force.model import predict_contacts
+    cid = np.asarray(target_markers["contact_id"])
+    starts = np.flatnonzero(np.r_[True, cid[1:] != cid[:-1]])
+    stops = np.r_[starts[1:], cid.size]
+    which = np.unique(np.searchsorted(starts, np.asarray(rows, int), side="right") - 1)
+    read = np.concatenate([np.arange(starts[i], stops[i]) for i in which])
+    pred = predict_contacts(model, np.asarray(target_markers["images"][read.tolist()]), cid[read],
+                            np.asarray(target_markers["reference"]))
+    return pred[np.searchsorted(read, np.asarray(rows, int))]
+
+
+def shear_readout(model, target_markers: Mapping, rows: np.ndarray, shear: np.ndarray) -> tuple[float, float]:
+    """(gx, gy): per shear axis, the least-squares gain, through 0, from `model`'s shear on the
+    target's own frames `rows` (_target_predictions) to `shear` (K,2) there, clipped to
+    READOUT_GAIN_RANGE (1 where the model reads no shear).  A model that reads the target's
+    shear at half its size gets gain 2."""
+    pred = _target_predictions(model, target_markers, rows)[:, :2].astype(float)
+    shear = np.asarray(shear, float)
+    if shear.shape != pred.shape:
+        raise ValueError(f"shear_readout: {shear.shape[0]} shear labels for {pred.shape[0]} frames")
+    gains = []
+    for a in (0, 1):
+        den = float(np.sum(pred[:, a] ** 2))
+        g = float(np.sum(shear[:, a] * pred[:, a]) / den) if den > 1e-12 else 1.0
+        gains.append(round(float(np.clip(g, *READOUT_GAIN_RANGE)), 6))
+    return gains[0], gains[1]
+
+
+def scale_shear(model, gains) -> None:
+    """Scale `model`'s shear output (Fx, Fy) by `gains` in place: its force range (force_min,
+    force_max buffers and config), which its sigmoid output spans, so every reader of the
+    stored model (studies, control, streaming) reads the scaled force."""
+    import torch
+    g = torch.tensor([float(gains[0]), float(gains[1]), 1.0], dtype=model.force_min.dtype,
+                     device=model.force_min.device)
+    with torch.no_grad():
+        model.force_min.mul_(g)
+        model.force_max.mul_(g)
+    model.config["force_min"] = [round(float(v), 6) for v in model.force_min.cpu().tolist()]
+    model.config["force_max"] = [round(float(v), 6) for v in model.force_max.cpu().tolist()]
 
 
 def _depth_ratio(mode: str, source_depth, target_markers, name: str) -> float:

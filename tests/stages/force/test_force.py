@@ -8,8 +8,8 @@ import torch
 from sklearn.metrics import mean_absolute_error, r2_score
 
 from stages.common import InputError, torch_device
-from stages.force.compensation import (Curves, compensate, fit_curves, label_scale, loading_mask,
-                                       shear_ratio)
+from stages.force.compensation import (Curves, compensate, curves_from_calibration, fit_curves, label_scale,
+                                       loading_mask, shear_ratio)
 from stages.force.metrics import METRICS, force_metrics
 from stages.force.model import (ForceRegressor, MeanPredictor, StreamingPredictor, from_arrays, load_model,
                                 load_predictor, model_config, predict_contacts, predict_sequence,
@@ -764,3 +764,224 @@ def test_fit_transfer_splices_the_paired_target_frames(skins, tiny_config):
         np.testing.assert_array_equal(seed["genforce_comp"][k], v)
     with pytest.raises(InputError, match=r"transfer\[B->A\]: splice True is not one of \('none', 'replace', 'mix'\)"):
         fit_transfer(translated=translated, target_markers=target, splice=True, checkpoint="/nonexistent/x", **kw)
+
+
+# ---------------------------------------------------------------------------- contact shear
+
+def _mesh_art(names):
+    """An `indenters` artifact's layout (meshes/<name>/vertices, faces) as a flat mapping."""
+    from stages.sim.indenters import indenter_set
+    meshes = indenter_set(names)["meshes"]
+    return {f"meshes/{n}/{k}": v for n, m in meshes.items() for k, v in m.items()}
+
+
+def _stick_calibration(stiffness=0.3, depth_mm=2.0, mu=0.8, m=4):
+    """A calibration with a shear leg along +x: F_x = stiffness * shift (N/mm), and the attrs
+    of a flat 30 mm pad on a 0.1 mm grid pressed by calib_punch to depth_mm."""
+    d, f, load, phase = _sheared_calibration(1.0, 0.1, m=m)
+    shift = np.zeros((d.size, 2))
+    j = np.r_[np.arange(1, m + 1), np.arange(m - 1, -1, -1)] / m
+    shift[phase != 0, 0] = np.r_[j, np.zeros(int(np.sum(phase == 3)))][: int(np.sum(phase != 0))]
+    shift[phase == 3] = 0.0
+    f = f.copy()
+    f[(phase == 1) | (phase == 2), 0] = stiffness * shift[(phase == 1) | (phase == 2), 0]
+    f[(phase == 1) | (phase == 2), 1] = 0.0
+    return {"normalised_depth": d, "force": f, "loading": load, "phase": phase, "shift": shift,
+            "depth": d * depth_mm,
+            "attrs": {"max_depth_mm": depth_mm, "spacing_mm": 0.1, "pad_mm": [30.0, 30.0],
+                      "curvature_radius_mm": 0.0, "indenter": "calib_punch", "mu": mu}}
+
+
+def test_shear_stiffness_and_contact_shear():
+    from stages.force.compensation import contact_shear, shear_stiffness
+    assert shear_stiffness(_stick_calibration(0.3)) == pytest.approx(0.3)
+    with pytest.raises(ValueError, match="no shear leg"):
+        shear_stiffness(_calibration_art(1.0))
+    shift = np.array([[0.5, 0.0], [0.0, -1.0], [1.0, 1.0], [1.0, 0.0]])
+    # contact radius 1x, 2x (4x the area), 1x, 0 (no contact): F = k sqrt(A / A_p) shift
+    area, normal = np.array([12.0, 48.0, 12.0, 0.0]), np.array([-10.0, -10.0, -10.0, -10.0])
+    free = contact_shear(shift, area, normal, stiffness=0.3, punch_area=12.0)
+    np.testing.assert_allclose(free, [[0.15, 0.0], [0.0, -0.6], [0.3, 0.3], [0.0, 0.0]])
+    # capped at mu |Fz| = 0.4 N: the third frame (0.42 N) slides along its own direction
+    capped = contact_shear(shift, area, np.full(4, -1.0), stiffness=0.3, punch_area=12.0, mu=0.4)
+    np.testing.assert_allclose(capped, [[0.15, 0.0], [0.0, -0.4], [0.4 / np.sqrt(2)] * 2, [0.0, 0.0]])
+    with pytest.raises(ValueError, match="calibration contact's area must be positive"):
+        contact_shear(shift, area, normal, stiffness=0.3, punch_area=0.0)
+    with pytest.raises(ValueError, match=r"must be \(N,2\), \(N,\), \(N,\)"):
+        contact_shear(shift[:, :1], area, normal, stiffness=0.3, punch_area=12.0)
+
+
+def test_contact_areas_match_the_indenters_geometry():
+    """The rigid overlap with a flat pad: a 4 mm flat punch touches its whole face at any depth,
+    a sphere of radius 4 mm the disc of radius sqrt(2 R d - d^2)."""
+    from stages.force.nodes import _pad_spec, contact_areas
+    spec = _pad_spec(_stick_calibration()["attrs"])
+    assert spec["grid"] == [301, 301]
+    depth = np.array([0.1, 0.5, 1.0, 0.1, 0.5, 1.0])
+    area = contact_areas(_mesh_art(["sphere", "calib_punch"]), ["sphere", "calib_punch"],
+                         [0, 0, 0, 1, 1, 1], [0, 0, 0, 1, 1, 1], np.zeros((6, 2)), depth, spec)
+    hertz = np.pi * (2 * 4.0 * depth[:3] - depth[:3] ** 2)
+    np.testing.assert_allclose(area[:3], hertz, rtol=0.05)
+    np.testing.assert_allclose(area[3:], np.pi * 2.0 ** 2, rtol=0.03)
+
+
+def _contact_translated(depth_mm):
+    """Two contacts (sphere, then calib_punch) of 6 frames each: pressed to depth_mm in 3 steps
+    (phase 0), sheared 1 mm along +y (phase 1), released (phase 3); normalised depth = depth /
+    depth_mm; F_z = -2 N per normalised depth, F_y = 0.5 N per mm of shift (a sliding source)."""
+    nd = np.array([1 / 3, 2 / 3, 1.0, 1.0, 1.0, 0.5])
+    phase = np.array([0, 0, 0, 1, 1, 3], np.int8)
+    shift = np.zeros((6, 2))
+    shift[3:5, 1] = [0.5, 1.0]
+    nd, phase, shift = np.tile(nd, 2), np.tile(phase, 2), np.tile(shift, (2, 1))
+    force = np.c_[np.zeros(12), 0.5 * shift[:, 1], -2.0 * nd].astype(np.float32)
+    position = np.c_[shift + np.array([1.0, -1.0]), -nd * depth_mm]
+    return {"force": force, "normalised_depth": nd, "depth": nd * depth_mm, "phase": phase,
+            "shift": shift, "position": position, "contact_id": np.repeat([0, 1], 6),
+            "indenter_id": np.repeat([0, 1], 6), "indenters": np.array(["sphere", "calib_punch"], object),
+            "frame": np.arange(12)}
+
+
+def test_contact_labels_by_which_collection_presses_deeper():
+    """Mode "contact" gives the target's sticking-contact shear at the chosen frames where its
+    collection presses deeper than the source's (source 1 mm, target 3 mm), the compensated
+    shear where it presses as deep (within 10%), and none where it presses shallower."""
+    from stages.force.compensation import contact_shear
+    from stages.force.nodes import _pad_spec, contact_areas, contact_labels
+    meshes = _mesh_art(["sphere", "calib_punch"])
+    tgt = _stick_calibration(0.2, depth_mm=3.0, mu=0.9)
+    translated = _contact_translated(1.0)
+    comp = translated["force"] * np.float32(1.5)
+    rows = np.array([1, 3, 4, 10, 11])
+    shear, info = contact_labels(translated, tgt, comp, 1.0, indenters=meshes, rows=rows, name="t")
+    assert info["labels"] == "contact" and info["source_depth_mm"] == 1.0 and info["target_depth_mm"] == 3.0
+    assert info["stiffness_n_per_mm"] == pytest.approx(0.2) and info["mu"] == 0.9
+    assert info["punch_area_mm2"] == pytest.approx(np.pi * 4.0, rel=0.03)
+    spec = _pad_spec(tgt["attrs"])
+    area = contact_areas(meshes, translated["indenters"], translated["indenter_id"][rows],
+                         translated["contact_id"][rows], np.tile([1.0, -1.0], (rows.size, 1)),
+                         translated["normalised_depth"][rows] * 3.0, spec)
+    want = contact_shear(translated["shift"][rows], area, comp[rows, 2], stiffness=0.2,
+                         punch_area=info["punch_area_mm2"], mu=0.9)
+    assert shear.shape == (5, 2)
+    np.testing.assert_allclose(shear, want, rtol=1e-6)
+    # the sphere pressed 3 mm: a contact radius sqrt(15) = 3.9 mm against the punch's 2 mm
+    assert shear[2, 1] == pytest.approx(0.2 * np.sqrt(15.0) / 2.0, rel=0.05)
+    assert shear[3, 1] == pytest.approx(0.2, rel=0.02)                  # the punch: the calibration's
+    assert np.all(shear[[0, 4]] == 0)                                   # no shift, no shear
+    for depth_mm in (1.0, 1.08, 0.93):                                  # as deep, within 10%
+        same, info = contact_labels(translated, _stick_calibration(0.2, depth_mm=depth_mm), comp, 1.0,
+                                    indenters=None, rows=rows, name="t")
+        np.testing.assert_array_equal(same, comp[rows, :2])
+        assert info == {"labels": "compensated", "source_depth_mm": 1.0, "target_depth_mm": depth_mm}
+    none, info = contact_labels(translated, _stick_calibration(0.2, depth_mm=0.5), comp, 1.0,
+                                indenters=None, rows=rows, name="t")
+    assert none is None and info == {"labels": "none", "source_depth_mm": 1.0, "target_depth_mm": 0.5}
+    # k scales the target's depth: 1 mm calibration, collection twice as deep
+    assert contact_labels(translated, _stick_calibration(0.2, depth_mm=1.0), comp, 2.0, indenters=meshes,
+                          rows=rows, name="t")[1]["labels"] == "contact"
+    with pytest.raises(ValueError, match="t: compensation 'contact' needs the indenters' meshes"):
+        contact_labels(translated, tgt, comp, 1.0, indenters=None, rows=rows, name="t")
+    with pytest.raises(ValueError, match=r"needs the target calibration's attrs \['spacing_mm'\]"):
+        bad = dict(tgt, attrs={k: v for k, v in tgt["attrs"].items() if k != "spacing_mm"})
+        contact_labels(translated, bad, comp, 1.0, indenters=meshes, rows=rows, name="t")
+
+
+def test_shear_readout_gains_and_scale_shear(trained):
+    """scale_shear multiplies a model's Fx, Fy output by its gains and leaves Fz; shear_readout
+    finds the gain from the model's reading of the frames to their shear, clipped to
+    READOUT_GAIN_RANGE, 1 where the model reads none."""
+    from stages.force.nodes import READOUT_GAIN_RANGE, _target_predictions, scale_shear, shear_readout
+    model, _, images, _, _ = trained
+    art = {"images": np.concatenate(images), "reference": REF,
+           "contact_id": np.repeat(np.arange(len(images)), [len(x) for x in images])}
+    rows = np.array([40, 3, 17, 90, 91, 60])                            # any order, several contacts
+    full = predict_contacts(model, art["images"], art["contact_id"], REF)
+    np.testing.assert_allclose(_target_predictions(model, art, rows), full[rows], rtol=1e-5, atol=1e-6)
+    read = full[rows, :2]
+    assert shear_readout(model, art, rows, read * [3.0, 0.5]) == pytest.approx((3.0, 0.5), rel=1e-5)
+    assert shear_readout(model, art, rows, read * [10.0, -1.0]) == READOUT_GAIN_RANGE[::-1]
+    with pytest.raises(ValueError, match="5 shear labels for 6 frames"):
+        shear_readout(model, art, rows, read[:5])
+    copy = from_arrays(to_arrays(model), model.config)
+    scale_shear(copy, (2.0, 0.5))
+    np.testing.assert_allclose(predict_contacts(copy, art["images"], art["contact_id"], REF),
+                               full * [2.0, 0.5, 1.0], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(copy.config["force_min"][:2], np.multiply(model.config["force_min"][:2], [2.0, 0.5]),
+                               rtol=1e-5)
+    assert copy.config["force_max"][2] == pytest.approx(model.config["force_max"][2])
+
+
+def test_fit_transfer_shear_readout_scales_the_shear_it_reads(skins, tiny_config):
+    """readout "shear": genforce_comp is readout "none"'s model with its shear range scaled by
+    the read-out gains on the paired frames (stored, with the shear they were fitted to: in
+    mode "contact", where the target presses deeper, its contact shear), which a seed model of
+    the same seed reproduces bit for bit; where the target presses shallower nothing is read."""
+    from stages.force.nodes import _paired_rows, shear_readout
+    n = len(skins["A"]["force"])
+    shift = 0.5 * np.asarray(skins["A"]["force"], float)[:, :2]        # mm: the synthetic shear's cause
+    nd = np.asarray(skins["A"]["normalised_depth"], float)
+    translated = dict(skins["A"], paired=np.arange(n) % 2 == 0, shift=shift, depth=nd * 1.0,
+                      position=np.c_[shift + 2.0, -nd])
+    target = dict(skins["B"], paired=translated["paired"])
+    train = ["sphere", "prism", "cone"]
+    kw = dict(config={**tiny_config, "seq_len": 10}, steps=4, batch_size=2, lr=0.05, seed=0,
+              finetune_steps=0, train_indenters=train, source="B", target="A", translated=translated,
+              target_markers=target, source_calibration=_stick_calibration(0.5, depth_mm=1.0, mu=0.5),
+              indenters=_mesh_art([*train, "calib_punch"]), align_pairs=12, splice="replace")
+    deeper = _stick_calibration(1.0, depth_mm=3.0, mu=0.9)
+    axes = fit_transfer(target_calibration=deeper, compensation="contact", readout="none", **kw)
+    contact = fit_transfer(target_calibration=deeper, compensation="contact", readout="shear", **kw)
+    info = contact["attrs"]["shear_readout"]
+    assert info["labels"] == "contact" and info["pairs"] == 12 and "shear_readout" not in axes["attrs"]
+    assert all(0.25 <= g <= 4.0 and g != 1.0 for g in info["gain"])    # in range, and applied
+    frames, rows = _paired_rows(translated, target, train, 12)
+    np.testing.assert_array_equal(contact["readout_frame"], frames)
+    assert contact["readout_shear"].shape == (12, 2) and np.abs(contact["readout_shear"]).max() > 0
+    model = load_model({"genforce_comp": axes["genforce_comp"], "attrs": axes["attrs"]}, "genforce_comp")
+    gains = shear_readout(model, target, rows[1], contact["readout_shear"])
+    assert info["gain"] == pytest.approx(list(gains))
+    for k, v in axes["genforce_comp"].items():
+        want = v * np.array([*gains, 1.0], np.float32) if k in ("force_min", "force_max") else v
+        np.testing.assert_allclose(contact["genforce_comp"][k], want, rtol=1e-6)
+    for k, v in axes["genforce"].items():
+        np.testing.assert_array_equal(contact["genforce"][k], v)
+    stored = {"attrs": json.loads(json.dumps(contact["attrs"])), "readout_frame": contact["readout_frame"],
+              "readout_shear": contact["readout_shear"]}
+    seed_kw = {k: kw[k] for k in ("config", "steps", "batch_size", "lr", "finetune_steps", "train_indenters",
+                                  "target_markers", "align_pairs", "splice")}
+    seed = fit_transfer_seed(transfer=stored, translated=translated, seed=0, **seed_kw)
+    assert seed["attrs"]["shear_readout"]["gain"] == info["gain"]
+    for k, v in contact["genforce_comp"].items():
+        np.testing.assert_array_equal(seed["genforce_comp"][k], v)
+    with pytest.raises(ValueError, match="shear read-out frames are not this node's paired frames"):
+        fit_transfer_seed(transfer={**stored, "readout_frame": frames + 1}, translated=translated, seed=0,
+                          **seed_kw)
+    shallower = _stick_calibration(0.2, depth_mm=0.5, mu=0.9)
+    none = fit_transfer(target_calibration=shallower, compensation="contact", readout="shear", **kw)
+    assert none["attrs"]["shear_readout"] == {"labels": "none", "source_depth_mm": pytest.approx(nd.max()),
+                                              "target_depth_mm": pytest.approx(0.5 * nd.max()), "pairs": 12}
+    assert "readout_shear" not in none
+    plain = fit_transfer(target_calibration=shallower, compensation="contact", readout="none", **kw)
+    for k, v in plain["genforce_comp"].items():
+        np.testing.assert_array_equal(none["genforce_comp"][k], v)
+    # as deep: the compensated labels' shear; mode "axes": those, whatever the depths
+    for cal, mode in ((_stick_calibration(0.2, depth_mm=1.0), "contact"), (deeper, "axes")):
+        out = fit_transfer(target_calibration=cal, compensation=mode, readout="shear", **kw)
+        assert out["attrs"]["shear_readout"]["labels"] == "compensated"
+        comp = compensate(np.asarray(translated["force"], np.float32), nd, loading_mask(translated["phase"]),
+                          curves_from_calibration(kw["source_calibration"]), curves_from_calibration(cal),
+                          mode=mode)
+        np.testing.assert_allclose(out["readout_shear"], comp[rows[0], :2], rtol=1e-6)
+    # one material: genforce_comp is genforce, read out as one model
+    same = {k: kw[k] for k in kw if k != "source_calibration"} | {"source_calibration": kw["source_calibration"],
+                                                                  "target_calibration": kw["source_calibration"]}
+    one = fit_transfer(compensation="contact", readout="shear", **same)
+    unread = fit_transfer(compensation="contact", readout="none", **same)
+    assert one["attrs"]["compensation_identity"] and one["attrs"]["shear_readout"]["labels"] == "compensated"
+    gain = np.array([*one["attrs"]["shear_readout"]["gain"], 1.0], np.float32)
+    for k, v in unread["genforce"].items():
+        np.testing.assert_array_equal(one["genforce_comp"][k], one["genforce"][k])
+        np.testing.assert_allclose(one["genforce"][k], v * gain if k in ("force_min", "force_max") else v, rtol=1e-6)
+    with pytest.raises(InputError, match=r"transfer\[B->A\]: readout 'axes' is not one of \('none', 'shear'\)"):
+        fit_transfer(target_calibration=deeper, readout="axes", checkpoint="/nonexistent/x", **kw)
