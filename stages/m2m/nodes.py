@@ -461,7 +461,9 @@ def image_study(*, study: str, pairs: list, features: Mapping, translated: Mappi
 
 def _motion_errors(study, pairs, names, index, features, markers, sources, methods, metrics) -> dict:
     """image_study's motion_err_px of every pair of skins in `markers` whose evaluation frames
-    carry the same force labels in both (one mechanical twin, so one deformation; see there)."""
+    carry the same force labels in both (one mechanical twin, so one deformation; see there)
+    and whose target's own markers move there (a z-only taxel skin's dots grow and shrink in
+    place: no marker motion to keep, so no score)."""
     from stages.m2m.flow import motion_error
 
     def rows_of(art, wanted):  # art's rows of the frames `wanted`, in that order
@@ -489,6 +491,8 @@ def _motion_errors(study, pairs, names, index, features, markers, sources, metho
             continue                 # two twins pressed alike but deformed differently
         truth = read(markers[t]["images"], rows_t)
         reference = np.asarray(markers[t]["reference"], np.uint8)
+        if motion_error(truth, truth, reference)[2] == 0:
+            continue                 # no marker of the target moves: nothing to keep
         for m in methods:
             if m == "before":
                 images = np.broadcast_to(reference, truth.shape)

@@ -102,6 +102,12 @@ def test_motion_errors_only_where_both_skins_deformed_alike(skins, monkeypatch):
     assert out["metrics"]["s/mean/m2m/motion_err_px"] == m["s/Array3_Diamond3/m2m/motion_err_px"]
     assert set(nodes.image_study(**run)["figures"]) == {"fid", "kid", "tsne"}      # no markers: no motion
     assert "motion" in out["figures"] and np.isnan(out["motion_err"]["m2m"][2, 0])
+    # a target whose markers do not move (a z-only taxel skin's dots): no score, not NaN
+    still = dict(skins, Circle3={**skins["Circle3"], "images": np.broadcast_to(
+        skins["Circle3"]["reference"], skins["Circle3"]["images"].shape).copy()})
+    out = nodes.image_study(**run, markers=still)
+    assert "s/Diamond3_Circle3/m2m/motion_err_px" not in out["metrics"]
+    assert out["metrics"]["s/Array3_Diamond3/m2m/motion_err_px"] == m["s/Array3_Diamond3/m2m/motion_err_px"]
 
 
 def test_translation_streams_labels_and_matches_flow_warp_layout(skins, trained, monkeypatch):
