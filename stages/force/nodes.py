@@ -505,11 +505,11 @@ def _target_predictions(model, target_markers: Mapping, rows: np.ndarray) -> np.
     """(K,3) the model's forces at the target's own frames `rows`, each read in its whole contact
     (the GRU's state from the contact's first frame, as the studies and a control loop read)."""
     from stages.force.model import predict_contacts
-    cid = np.asarray(target_markers["contact_id"])
-    starts = np.flatnonzero(np.r_[True, cid[1:] != cid[:-1]])
-    stops = np.r_[starts[1:], cid.size]
+    runs = contact_runs(target_markers)
+    starts = np.array([a for a, _ in runs])
     which = np.unique(np.searchsorted(starts, np.asarray(rows, int), side="right") - 1)
-    read = np.concatenate([np.arange(starts[i], stops[i]) for i in which])
+    read = np.concatenate([np.arange(*runs[i]) for i in which])
+    cid = np.asarray(target_markers["contact_id"])
     pred = predict_contacts(model, np.asarray(target_markers["images"][read.tolist()]), cid[read],
                             np.asarray(target_markers["reference"]))
     return pred[np.searchsorted(read, np.asarray(rows, int))]
