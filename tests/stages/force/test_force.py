@@ -985,3 +985,116 @@ def test_fit_transfer_shear_readout_scales_the_shear_it_reads(skins, tiny_config
         np.testing.assert_allclose(one["genforce"][k], v * gain if k in ("force_min", "force_max") else v, rtol=1e-6)
     with pytest.raises(InputError, match=r"transfer\[B->A\]: readout 'axes' is not one of \('none', 'shear'\)"):
         fit_transfer(target_calibration=deeper, readout="axes", checkpoint="/nonexistent/x", **kw)
+
+
+# ---------------------------------------------------------------------------- label shape
+
+def _sphere_integral(radius, depth):
+    """Closed form of integral_0^d sqrt(2 R x - x^2) dx (the radius of a sphere's geometric
+    contact pressed x deep into a flat pad), the circle segment's area."""
+    u = depth - radius
+    return 0.5 * (u * np.sqrt(np.maximum(radius ** 2 - u ** 2, 0.0)) + radius ** 2 * np.arcsin(u / radius)) \
+        + np.pi * radius ** 2 / 4
+
+
+def test_sneddon_integral_of_a_punch_a_cone_and_a_sphere():
+    """I(d) = integral of the contact radius: a punch's n cells, a = sqrt(n cell / pi), give a d
+    exactly; a cone of slope t, r = t x, gives t d^2 / 2; a sphere of radius R the circle
+    segment (_sphere_integral), Hertz's d^1.5 at small depth."""
+    from stages.force.compensation import sneddon_integral
+    depth = np.array([0.0, 0.25, 0.5, 1.0])
+    np.testing.assert_allclose(sneddon_integral(np.zeros(400), depth, 0.01), np.sqrt(4 / np.pi) * depth,
+                               rtol=1e-12)
+    h = 0.01
+    x = (np.arange(-300, 301) * h)
+    r = np.hypot(x[None, :], x[:, None]).ravel()
+    np.testing.assert_allclose(sneddon_integral(r / 2.0, depth[1:], h * h), 2.0 * depth[1:] ** 2 / 2, rtol=0.02)
+    sphere = 4.0 - np.sqrt(np.maximum(16.0 - r ** 2, 0.0))
+    sphere[r > 4.0] = np.inf                                          # beyond the sphere: no contact
+    np.testing.assert_allclose(sneddon_integral(sphere, depth[1:], h * h), _sphere_integral(4.0, depth[1:]),
+                               rtol=0.02)
+    assert sneddon_integral(sphere, depth, h * h)[0] == 0.0
+    np.testing.assert_array_equal(sneddon_integral([np.inf], depth, 1.0), np.zeros(4))
+    with pytest.raises(ValueError, match="cell area must be positive, got 0.0"):
+        sneddon_integral(sphere, depth, 0.0)
+
+
+def test_shape_factor_cases():
+    from stages.force.compensation import SHAPE_FACTOR_MAX, shape_factor
+    i_s, p_s = np.array([2.0, 2.0, 0.0, 2.0, 1.0, 2.0]), np.array([1.0, 1.0, 1.0, 1.0, 1.0, 0.0])
+    i_t, p_t = np.array([6.0, 2.0, 5.0, 0.0, 99.0, 3.0]), np.array([2.0, 1.0, 2.0, 2.0, 1.0, 2.0])
+    np.testing.assert_array_equal(shape_factor(i_s, p_s, i_t, p_t), [1.5, 1.0, 1.0, 0.0, SHAPE_FACTOR_MAX, 1.0])
+    same = np.random.default_rng(0).uniform(0.1, 3, 50)
+    np.testing.assert_array_equal(shape_factor(same, same[::-1], same, same[::-1]), np.ones(50))
+    with pytest.raises(ValueError, match="the four integrals' shapes differ"):
+        shape_factor(i_s, p_s, i_t[:2], p_t)
+
+
+def test_label_shape_is_hertz_over_sneddon_between_pads_pressed_to_different_depths():
+    """A sphere pressed 1 mm into the source's flat pad and 3 mm into the target's: its force
+    ratio over the punch's (whose contact does not grow) is I_sphere(3 d) / I_sphere(d) / 3,
+    sqrt(3) at small depth (Hertz d^1.5 against Sneddon's punch d); the punch's own frames give 1; one
+    pad pressed as deep gives 1 exactly; missing pad geometry is named."""
+    from stages.force.nodes import label_shape
+    meshes = _mesh_art(["sphere", "calib_punch"])
+    translated = _contact_translated(1.0)
+    src, tgt = _stick_calibration(depth_mm=1.0), _stick_calibration(depth_mm=3.0)
+    shape = label_shape(translated, src, tgt, 1.0, indenters=meshes, name="t")
+    d = translated["depth"][:6]
+    np.testing.assert_allclose(shape[:6], _sphere_integral(4.0, 3 * d) / _sphere_integral(4.0, d) / 3, rtol=0.04)
+    assert 1.5 < shape[2] < np.sqrt(3)            # sqrt(3) at d -> 0; 3 mm is deep on a 4 mm sphere
+    np.testing.assert_allclose(shape[6:], 1.0, rtol=1e-9)
+    # k doubles the target's depth: a 1.5 mm calibration, collection twice as deep
+    np.testing.assert_allclose(label_shape(translated, src, _stick_calibration(depth_mm=1.5), 2.0,
+                                           indenters=meshes, name="t"), shape, rtol=1e-9)
+    np.testing.assert_array_equal(label_shape(translated, src, _stick_calibration(depth_mm=1.0), 1.0,
+                                              indenters=meshes, name="t"), np.ones(12))
+    bad = dict(src, attrs={k: v for k, v in src["attrs"].items() if k != "pad_mm"})
+    with pytest.raises(ValueError, match=r"t: compensation_shape 'indenter' needs the source calibration's "
+                                         r"attrs \['pad_mm'\]"):
+        label_shape(translated, bad, tgt, 1.0, indenters=meshes, name="t")
+    with pytest.raises(ValueError, match="t: compensation_shape 'indenter' needs the indenters' meshes"):
+        label_shape(translated, src, tgt, 1.0, indenters=None, name="t")
+
+
+def test_fit_transfer_indenter_shape_scales_its_labels_and_the_seeds_and_studies_read_it(skins, tiny_config):
+    """compensation_shape "indenter": the labels times label_shape (stored), which a seed of the
+    same seed reproduces bit for bit and compensated_test_labels applies; "punch" trains on the
+    curves' labels alone; an unknown mode is named."""
+    from stages.force.nodes import compensated_test_labels, label_shape, shaped
+    n = len(skins["A"]["force"])
+    nd = np.asarray(skins["A"]["normalised_depth"], float)
+    shift = np.zeros((n, 2))
+    translated = dict(skins["A"], shift=shift, depth=nd * 1.0, position=np.c_[shift + 2.0, -nd],
+                      frame=np.arange(n))
+    train = ["sphere", "prism", "cone"]
+    meshes = _mesh_art([*NAMES, "calib_punch"])
+    src, tgt = _stick_calibration(0.5, depth_mm=1.0), _stick_calibration(1.0, depth_mm=3.0)
+    kw = dict(config={**tiny_config, "seq_len": 10}, steps=4, batch_size=2, lr=0.05, seed=0,
+              finetune_steps=0, train_indenters=train, source="B", target="A", translated=translated,
+              source_calibration=src, target_calibration=tgt, indenters=meshes, compensation="axes")
+    out = fit_transfer(compensation_shape="indenter", **kw)
+    punch = fit_transfer(compensation_shape="punch", **kw)
+    want = label_shape(translated, src, tgt, 1.0, indenters=meshes, name="t")
+    np.testing.assert_array_equal(out["label_shape"], want.astype(np.float32))
+    assert out["attrs"]["compensation_shape"] == "indenter" and "label_shape" not in punch
+    assert np.ptp(want[nd > 0.2]) > 0.1                                 # the indenters differ
+    assert any(not np.array_equal(v, punch["genforce_comp"][k]) for k, v in out["genforce_comp"].items())
+    for k, v in out["genforce"].items():
+        np.testing.assert_array_equal(punch["genforce"][k], v)
+    stored = {"attrs": json.loads(json.dumps(out["attrs"])), "label_shape": out["label_shape"]}
+    seed = fit_transfer_seed(transfer=stored, translated=translated, seed=0,
+                             **{k: kw[k] for k in ("config", "steps", "batch_size", "lr", "finetune_steps",
+                                                   "train_indenters")})
+    for k, v in out["genforce_comp"].items():
+        np.testing.assert_array_equal(seed["genforce_comp"][k], v)
+    rows = np.concatenate([np.arange(a, b) for a, b in contact_runs(translated, ["torus"])])
+    labels = compensated_test_labels(translated, stored, ["torus"], np.arange(n)[rows])
+    plain = compensated_test_labels(translated, {"attrs": stored["attrs"]}, ["torus"], np.arange(n)[rows])
+    np.testing.assert_array_equal(labels, shaped(plain, want[rows]))
+    assert not np.allclose(labels, plain)
+    with pytest.raises(ValueError, match="label_shape has 3 frames, the source's collection 168"):
+        compensated_test_labels(translated, {**stored, "label_shape": want[:3]}, ["torus"], np.arange(n)[rows])
+    with pytest.raises(InputError, match=r"transfer\[B->A\]: compensation_shape 'sphere' is not one of "
+                                         r"\('punch', 'indenter'\)"):
+        fit_transfer(compensation_shape="sphere", **kw)
