@@ -270,56 +270,6 @@ def contact_shear(shift, area, normal, *, stiffness: float, punch_area: float,
     return shear
 
 
-def sneddon_integral(levels, depth, cell: float) -> np.ndarray:
-    """(N,) mm^2: I(d) = integral from 0 to d of a(x) dx, a(x) = sqrt(A(x) / pi) the radius of
-    the contact of area A(x) = cell * #(levels < x) that a rigid indenter makes pressed x deep
-    (`levels` the indenter's height over each pad cell of area `cell` mm^2 from touchdown, mm;
-    `depth` (N,) mm).  Sneddon: an axisymmetric punch, sphere or cone pressed d into a
-    half-space carries F = 2 E* I(d) (dF/dd = 2 E* a), so I carries the indenter's shape and
-    the sensor's (a dome's contact grows where a flat pad's does not) and E* the material."""
-    levels = np.sort(np.asarray(levels, float).ravel())
-    levels = levels[np.isfinite(levels)]
-    depth = np.asarray(depth, float)
-    if not (np.isfinite(cell) and cell > 0):
-        raise ValueError(f"sneddon_integral: the cell area must be positive, got {cell}")
-    if levels.size == 0:
-        return np.zeros(depth.shape)
-    radius = np.sqrt(np.arange(1, levels.size + 1) * float(cell) / np.pi)
-    full = np.concatenate([[0.0], np.cumsum(radius[:-1] * np.diff(levels))])
-    j = np.searchsorted(levels, depth, side="left")           # cells in contact at each depth
-    i = np.maximum(j - 1, 0)
-    return np.where(j > 0, full[i] + radius[i] * (depth - levels[i]), 0.0)
-
-
-# the shape factor's largest value: on the twins it is <= 6.2 on 99% of a pair's frames and
-# larger only at first touch, where the labels are near 0 (capping at 4, 8 or 16 leaves the
-# labels' R2 unchanged); the cap keeps a vanishing punch contact from dividing by ~0
-SHAPE_FACTOR_MAX = 16.0
-
-
-def shape_factor(indenter_source, punch_source, indenter_target, punch_target) -> np.ndarray:
-    """(N,) the factor by which an indenter's force ratio between two sensors differs from the
-    calibration punch's at the same depths, from Sneddon integrals (:func:`sneddon_integral`)
-    of the frame's indenter and of the punch on each sensor, each at that sensor's depth:
-
-        s = (I_t / I_s) / (P_t / P_s)
-
-    The calibration curves give the punch's force ratio r = E*_t P_t / (E*_s P_s); the
-    indenter's is E*_t I_t / (E*_s I_s) = r s.  s is 1 where both sensors make the same
-    contacts (one pad shape pressed as deep: the homogeneous and material pairs, bit for bit)
-    and 1 where the source is not in contact or a punch contact is empty (no ratio to take);
-    0 where only the target misses; capped at SHAPE_FACTOR_MAX."""
-    arrays = [np.asarray(v, float) for v in (indenter_source, punch_source, indenter_target, punch_target)]
-    if len({a.shape for a in arrays}) != 1:
-        raise ValueError(f"shape_factor: the four integrals' shapes differ: {[a.shape for a in arrays]}")
-    i_s, p_s, i_t, p_t = arrays
-    defined = (i_s > 0) & (p_s > 0) & (p_t > 0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = np.where(defined, (i_t / np.where(defined, i_s, 1.0)) / np.where(defined, p_t / p_s, 1.0), 1.0)
-    same = (i_s == i_t) & (p_s == p_t)
-    return np.where(same, 1.0, np.minimum(s, SHAPE_FACTOR_MAX))
-
-
 def compensate(force, normalised_depth, loading, source: Curves, target: Curves,
                eps: float = 1e-6, *, mode: str = "normal", depth_ratio: float = 1.0) -> np.ndarray:
     """Source labels rescaled to the target's material: Fz * r per frame, Fx and Fy * r times

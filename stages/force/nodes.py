@@ -179,7 +179,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
                  source: str, target: str, config: Mapping, steps: int, batch_size: int, lr: float,
                  seed: int, finetune_steps: int, train_indenters: Sequence[str] | None = None,
                  compensation: str = "normal", compensation_depth: str = "shared",
-                 compensation_shape: str = "punch", target_markers: Mapping | None = None, indenters: Mapping | None = None,
+                 target_markers: Mapping | None = None, indenters: Mapping | None = None,
                  source_spec: Mapping | None = None, target_spec: Mapping | None = None,
                  align: str = "none", align_pairs: int = 0, splice: str = "none",
                  readout: str = "none", checkpoint: str | None = None) -> dict:
@@ -202,11 +202,6 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     `align_pairs` location-paired frames against the shear they carry (_readout_labels); stored
     as readout_frame, readout_shear and attrs shear_readout, which the seeds read.  Where the
     compensation is the identity genforce_comp is genforce, and so is scaled too.
-    `compensation_shape`: "punch" (the paper's) scales every label by the calibration curves'
-    ratio alone; "indenter" also by each frame's shape factor (label_shape: how the frame's
-    indenter's contact on the two sensors differs from the calibration punch's, from the
-    indenters' meshes and the calibrations' pad geometry), stored as label_shape, which the
-    seeds and the studies' labels_comp read.
     `compensation_depth`: "shared" evaluates both curves at the source's normalised depth;
     "paired" evaluates the target's at the target's own normalised depth of the paired frame,
     k times the source's (compensation.depth_ratio, from the normalised depths of the source's
@@ -238,12 +233,8 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     depth = np.asarray(translated["normalised_depth"], float)
     loading = loading_mask(np.asarray(translated["phase"]))
     k = _depth_ratio(compensation_depth, depth, target_markers, f"fit_transfer[{source}->{target}]")
-    shape = _label_shape(compensation_shape, translated, source_calibration, target_calibration, k,
-                         indenters, name)
-    identity = src_curves == tgt_curves and k == 1.0 and bool(np.all(shape == 1.0))
+    identity = src_curves == tgt_curves and k == 1.0
     comp = compensate(force, depth, loading, src_curves, tgt_curves, mode=compensation, depth_ratio=k)
-    if not identity:
-        comp = shaped(comp, shape)
     read_on, readout_info = _readout_labels(readout, compensation, translated, target_calibration,
                                             comp, k, indenters, target_markers, train_indenters,
                                             align_pairs, name)
@@ -268,19 +259,19 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
         models["genforce_comp"] = genforce_comp
     models, aligned = align_models(models, translated, target_markers, train_indenters, align_pairs,
                                    align, name)
-    extra = {} if identity or compensation_shape == "punch" else {"label_shape": shape.astype(np.float32)}
+    extra = {}
     if read_on is not None:
         frames, rows, shear = read_on
         readout_info["gain"] = list(shear_readout(models["genforce_comp"], target_markers, rows[1], shear))
         scale_shear(models["genforce_comp"], readout_info["gain"])
-        extra.update(readout_frame=frames, readout_shear=shear)
+        extra = {"readout_frame": frames, "readout_shear": shear}
     weights = to_arrays(models["genforce"])
     weights_comp = to_arrays(models["genforce_comp"])
     if identity:
         models.pop("genforce_comp")
     rows = np.concatenate([np.arange(a, b) for a, b in runs])
     scale = (np.ones(rows.size) if identity else
-             label_scale(depth[rows], loading[rows], src_curves, tgt_curves, depth_ratio=k) * shape[rows])
+             label_scale(depth[rows], loading[rows], src_curves, tgt_curves, depth_ratio=k))
     kept, timing = _split_timing(histories, ckpt)
     figures = {"loss": loss_figure(histories, name),
                "compensation": curves_figure({source: (source_calibration, src_curves),
@@ -291,7 +282,6 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
                       "compensation_identity": bool(identity), "compensation": compensation,
                       **({"shear_readout": readout_info} if readout_info else {}),
                       "compensation_depth": compensation_depth, "depth_ratio": k, "align": aligned,
-                      "compensation_shape": compensation_shape,
                       "spliced": spliced,
                       "shear_ratio": shear_ratio(src_curves, tgt_curves, compensation, k),
                       "force_range": {m: {"min": mdl.config["force_min"], "max": mdl.config["force_max"]}
@@ -331,24 +321,6 @@ def _readout_labels(readout, mode, translated, target_calibration, comp, k, inde
 
 
 DEPTH_MODES = ("shared", "paired")
-SHAPE_MODES = ("punch", "indenter")
-
-
-def shaped(labels, shape) -> np.ndarray:
-    """(N,3) float32: compensated labels times each frame's label shape factor (N,), in float32
-    (every reader of a transfer's label_shape scales its labels alike, bit for bit)."""
-    return (np.asarray(labels, np.float32) * np.asarray(shape, np.float32)[:, None]).astype(np.float32)
-
-
-def _label_shape(mode, translated, source_calibration, target_calibration, k, indenters, name):
-    """(N,) each translated frame's label shape factor: 1 ("punch") or label_shape's ("indenter")."""
-    from stages.common import InputError
-    if mode not in SHAPE_MODES:
-        raise InputError(f"{name}: compensation_shape {mode!r} is not one of {SHAPE_MODES}")
-    if mode == "punch":
-        return np.ones(len(translated["normalised_depth"]))
-    return label_shape(translated, source_calibration, target_calibration, k, indenters=indenters,
-                       name=name)
 SPLICE_MODES = ("none", "replace", "mix")
 
 
@@ -405,8 +377,6 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
                            loading_mask(np.asarray(translated["phase"])), curves["source"],
                            curves["target"], mode=info["compensation"],
                            depth_ratio=float(info["depth_ratio"]))
-        if "label_shape" in transfer:
-            force = shaped(force, transfer["label_shape"])
     images, seq_runs, spliced = _training_images(translated, runs, target_markers, train_indenters,
                                                  align_pairs, splice, name)
     seqs = make_sequences(images, [force[a:b] for a, b in seq_runs], reference, model_cfg)
@@ -454,89 +424,27 @@ def _pad_spec(attrs: Mapping) -> dict:
             "curvature_radius_mm": float(attrs["curvature_radius_mm"])}
 
 
-def _contact_levels(indenters: Mapping, names, indenter_id, contact_id, touchdown, spec: Mapping):
-    """Per contact: (its rows, the sorted depths (mm) at which each pad cell of `spec`
-    (_pad_spec) touches the rigid indenter, its tip over the contact's touchdown point (N,2) mm)."""
+def contact_areas(indenters: Mapping, names, indenter_id, contact_id, touchdown, depth,
+                  spec: Mapping) -> np.ndarray:
+    """(N,) mm^2: the rigid indenter's overlap with the undeformed pad of `spec` (_pad_spec) at
+    each frame's depth, the indenter's tip over its contact's touchdown point (N,2) mm: the
+    cells whose surface gap to the indenter is below the depth."""
     from stages.sim.indenters import mesh_from_artifact
     from stages.sim.sensors import contact_height, surface_gap
-    gap = surface_gap(spec)
+    gap, cell = surface_gap(spec), float(spec["spacing_mm"]) ** 2
     names = np.asarray(names).astype(str)
     contact_id, indenter_id = np.asarray(contact_id), np.asarray(indenter_id)
-    touchdown = np.asarray(touchdown, float)
-    meshes = {}
+    depth, touchdown = np.asarray(depth, float), np.asarray(touchdown, float)
+    meshes, out = {}, np.zeros(depth.size)
     for c in np.unique(contact_id):
         rows = np.flatnonzero(contact_id == c)
         name = str(names[indenter_id[rows[0]]])
         if name not in meshes:
             meshes[name] = mesh_from_artifact(indenters, name)
         height = contact_height(meshes[name], spec, touchdown[rows[0]], gap)
-        yield rows, np.sort(height[np.isfinite(height)].ravel())
-
-
-def contact_areas(indenters: Mapping, names, indenter_id, contact_id, touchdown, depth,
-                  spec: Mapping) -> np.ndarray:
-    """(N,) mm^2: the rigid indenter's overlap with the undeformed pad of `spec` (_pad_spec) at
-    each frame's depth, the indenter's tip over its contact's touchdown point (N,2) mm: the
-    cells whose surface gap to the indenter is below the depth."""
-    depth, cell = np.asarray(depth, float), float(spec["spacing_mm"]) ** 2
-    out = np.zeros(depth.size)
-    for rows, levels in _contact_levels(indenters, names, indenter_id, contact_id, touchdown, spec):
+        levels = np.sort(height[np.isfinite(height)].ravel())
         out[rows] = np.searchsorted(levels, depth[rows], side="left") * cell
     return out
-
-
-def contact_integrals(indenters: Mapping, names, indenter_id, contact_id, touchdown, depth,
-                      spec: Mapping) -> np.ndarray:
-    """(N,) mm^2: each frame's Sneddon integral (compensation.sneddon_integral) of its
-    indenter's contact with the pad of `spec` at its depth (mm), as contact_areas places it."""
-    from stages.force.compensation import sneddon_integral
-    depth, cell = np.asarray(depth, float), float(spec["spacing_mm"]) ** 2
-    out = np.zeros(depth.size)
-    for rows, levels in _contact_levels(indenters, names, indenter_id, contact_id, touchdown, spec):
-        out[rows] = sneddon_integral(levels, depth[rows], cell)
-    return out
-
-
-def _calibration_geometry(calibration: Mapping, role: str, name: str) -> tuple[dict, dict]:
-    attrs = attrs_of(calibration)
-    missing = [key for key in ("spacing_mm", "pad_mm", "curvature_radius_mm", "indenter", "max_depth_mm")
-               if key not in attrs]
-    if missing:
-        raise ValueError(f"{name}: compensation_shape 'indenter' needs the {role} calibration's attrs {missing}")
-    return attrs, _pad_spec(attrs)
-
-
-def label_shape(translated: Mapping, source_calibration: Mapping, target_calibration: Mapping,
-                k: float, *, indenters: Mapping | None, name: str) -> np.ndarray:
-    """(N,) compensation_shape "indenter": the factor by which each translated frame's label
-    scale differs from the calibration punch's (compensation.shape_factor).  The source's
-    contact is the frame's indenter over its touchdown point on the source's pad (the source
-    calibration's geometry) at the frame's depth; the target's the same indenter on the
-    target's pad at k times the frame's normalised depth times the target calibration's
-    max_depth_mm (as contact_labels); each punch is its calibration's indenter, centred, at
-    that sensor's depth.  On the twins this lifts the compensated Fz labels' R2 against the
-    target's own forces from 0.54-0.68 to 0.79-0.89 on the pairs with TacTip (its dome
-    pressed 4.5 mm, the flat pads 1 mm) and from 0.98 to 1.00 on the others."""
-    from stages.force.compensation import shape_factor
-    if indenters is None:
-        raise ValueError(f"{name}: compensation_shape 'indenter' needs the indenters' meshes")
-    src_attrs, src_spec = _calibration_geometry(source_calibration, "source", name)
-    tgt_attrs, tgt_spec = _calibration_geometry(target_calibration, "target", name)
-    depth = np.asarray(translated["depth"], float)
-    if (src_spec == tgt_spec and src_attrs["indenter"] == tgt_attrs["indenter"] and k == 1.0
-            and float(src_attrs["max_depth_mm"]) == float(tgt_attrs["max_depth_mm"])):
-        return np.ones(depth.size)              # one pad pressed as deep: the same contacts
-    target_depth = k * np.asarray(translated["normalised_depth"], float) * float(tgt_attrs["max_depth_mm"])
-    touchdown = np.asarray(translated["position"], float)[:, :2] - np.asarray(translated["shift"], float)
-    where = (translated["indenters"], np.asarray(translated["indenter_id"]),
-             np.asarray(translated["contact_id"]), touchdown)
-    n = depth.size
-    punch = lambda attrs, spec, d: contact_integrals(indenters, [attrs["indenter"]], np.zeros(n, int),
-                                                     np.zeros(n, int), np.zeros((n, 2)), d, spec)
-    return shape_factor(contact_integrals(indenters, *where, depth, src_spec),
-                        punch(src_attrs, src_spec, depth),
-                        contact_integrals(indenters, *where, target_depth, tgt_spec),
-                        punch(tgt_attrs, tgt_spec, target_depth))
 
 
 def contact_labels(translated: Mapping, target_calibration: Mapping, comp: np.ndarray, k: float, *,
@@ -715,19 +623,12 @@ def compensated_test_labels(source_art, transfer_art, test_indenters, target_fra
     if not np.array_equal(np.asarray(source_art["frame"])[rows], target_frames):
         return None
     curves = attrs["curves"]
-    labels = compensate(np.asarray(source_art["force"], np.float32)[rows],
-                        np.asarray(source_art["normalised_depth"], float)[rows],
-                        loading_mask(np.asarray(source_art["phase"])[rows]),
-                        Curves.from_dict(curves["source"]), Curves.from_dict(curves["target"]),
-                        mode=attrs.get("compensation", "normal"),
-                        depth_ratio=float(attrs.get("depth_ratio", 1.0)))
-    if "label_shape" not in transfer_art:
-        return labels
-    shape = np.asarray(transfer_art["label_shape"], np.float32)
-    if shape.shape != np.shape(source_art["frame"]):
-        raise ValueError(f"compensated_test_labels: the transfer's label_shape has {shape.size} frames, "
-                         f"the source's collection {np.size(source_art['frame'])}")
-    return shaped(labels, shape[rows])
+    return compensate(np.asarray(source_art["force"], np.float32)[rows],
+                      np.asarray(source_art["normalised_depth"], float)[rows],
+                      loading_mask(np.asarray(source_art["phase"])[rows]),
+                      Curves.from_dict(curves["source"]), Curves.from_dict(curves["target"]),
+                      mode=attrs.get("compensation", "normal"),
+                      depth_ratio=float(attrs.get("depth_ratio", 1.0)))
 
 
 def force_study(*, study: str, pairs: Sequence[Sequence[str]], own: Mapping[str, Mapping],
