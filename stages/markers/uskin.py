@@ -34,7 +34,8 @@ max_area 16 mm^2 take the twin's strongest shear to the 0.8 clip and its deepest
 about 14.5 mm^2 (dots about 4.3 mm across on a 6.15 x 5.65 mm pitch).  On the default profile
 (a finer solver grid) the cells move further, and its skins set s_xy 20000 (params.yaml: the
 dots then move about as far as GelSight's markers, under the clip).  They press further too
-(up to 5866 counts), so s_z 150 clips a dot at max_area on half its frames; s_z 500 would not.
+(up to 5866 counts), so s_z 150 clips a dot at max_area on half its frames.  s_z 500 clips
+none, but the transferred models then read less normal force (README, "hetero").
 
 `read_dots` inverts the drawing (every white pixel to its nearest dot: centres and areas) and
 `redraw` draws an image's dots again as a skin draws them, so that a translation into a taxel
