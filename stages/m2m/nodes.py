@@ -491,18 +491,18 @@ def _motion_errors(study, pairs, names, index, features, markers, sources, metho
             continue                 # two twins pressed alike but deformed differently
         truth = read(markers[t]["images"], rows_t)
         reference = np.asarray(markers[t]["reference"], np.uint8)
-        if motion_error(truth, truth, reference)[2] == 0:
-            continue                 # no marker of the target moves: nothing to keep
         for m in methods:
             if m == "before":
                 images = np.broadcast_to(reference, truth.shape)
             else:
                 art = sources[m][pair_label(s, t)]
                 images = read(art["images"], rows_of(art, frames))
-            err, _, _ = motion_error(images, truth, reference)
+            err, _, moving = motion_error(images, truth, reference)
+            if not moving:           # no marker of the target moves (truth's alone): nothing to keep
+                break
             out[m][index[s], index[t]] = err
             metrics[f"{study}/{s}_{t}/{m}/motion_err_px"] = err
-        scored = True
+            scored = True
     if not scored:
         return {}
     for m in methods:
