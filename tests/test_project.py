@@ -135,3 +135,37 @@ def test_noop_run_imports_no_science(ci_store):
                        env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert p.returncode == 0, p.stderr
     assert "HEAVY []" in p.stdout
+
+
+def test_transfers_compensate_with_a_captured_calibration(ci_store):
+    """A sensor listed in capture.calibration.sensors: its transfers wait for its captured
+    calibration, named in one line; captured (emulated rig), they compensate with it, and the
+    emulated capture's curves and contact labels are the twin's."""
+    from pipeline.artifact import Artifact
+    from stages.common import attrs_of
+    store, _ = ci_store
+    target = "transfer[source=gelsight-A-II,target=tactip]"
+
+    def attrs(*args):
+        path = pipeline("get", target, "--profile", "ci", "--store", store, *args).stdout.strip()
+        return attrs_of(Artifact(path))
+    twin = attrs()
+    listed = ("--profile", "ci", "--store", store, "-p", "capture.calibration.sensors=[tactip]")
+    p = pipeline("run", target, *listed, check=False)
+    assert p.returncode == 1
+    assert ("source node capture_calibration[sensor=tactip] has no artifact for these params; capture "
+            "it explicitly with `pipeline run 'capture_calibration[sensor=tactip]'`") in p.stdout + p.stderr
+    pipeline("run", "capture_calibration", *listed)
+    pipeline("run", target, *listed)
+    captured = attrs(*listed[4:])
+    assert captured["calibration"] == {"target": "capture_calibration[sensor=tactip]"}
+    assert "calibration" not in twin
+    for end in ("source", "target"):
+        for curve in ("loading", "unloading"):
+            assert captured["curves"][end][curve] == pytest.approx(twin["curves"][end][curve], rel=1e-3, abs=1e-3)
+    # TacTip presses deeper than GelSight: its shear labels come from the contact, whose
+    # geometry (pad, punch, grid, depth) and friction the captured calibration's attrs carry
+    read, want = captured["shear_readout"], twin["shear_readout"]
+    assert read["labels"] == want["labels"] == "contact" and read["mu"] == want["mu"] > 0
+    for key in ("punch_area_mm2", "target_depth_mm", "stiffness_n_per_mm"):
+        assert read[key] == pytest.approx(want[key], rel=1e-3), key

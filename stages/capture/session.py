@@ -432,3 +432,72 @@ def _capture(st, contacts, t, names, devices, device_params, robot_p, s, cam_out
         for k in tqdm(range(done, len(contacts)), desc="capture", unit="contact", disable=None, leave=False,
                       initial=done, total=len(contacts)):
             run.contact(t, contacts[k], names, first=(k == done))
+
+
+CALIBRATION_SESSION = {"name": None, "chunk_frames": 64, "tool_change": "auto"}
+
+
+def capture_calibration(*, trajectory: Mapping, sensor: str, spec: Mapping, devices, session: Mapping | None,
+                        robot: Mapping, netft: Mapping, serial_ft: Mapping, camera: Mapping,
+                        xela: Mapping, slcan: Mapping, rate_hz: float, staging_dir: str,
+                        emulate: bool, materials: Mapping, indenters: Mapping | None = None):
+    """Source node `capture_calibration[sensor]`: the material-compensation calibration pressed
+    into a real sensor (or its emulated twin) and recorded with an F/T sensor, so that the
+    compensation reads this sensor's own force-depth curves (stages.force.compensation) where
+    `calibrate[sensor]` would compute its twin's.
+
+    `trajectory` is the calibration trajectory (the flat punch to the trajectory's deepest point
+    and back, and its shear leg), pressed every frame to the sensor's max_depth_mm (`spec`, its
+    sensors catalogue entry), as calibrate presses its twin.  `devices`: the robot and an F/T
+    sensor (a camera or skin, if listed, is recorded too but not needed).  `session`
+    (CALIBRATION_SESSION): name (staging file capture-<name>.h5; default <sensor>-calibration),
+    chunk_frames, tool_change.  The device parameters, rate_hz, emulate and staging are
+    capture's.
+
+    Returns capture's arrays (force, depth, normalised_depth = depth / max_depth_mm, phase,
+    shift, ...) with attrs telling the compensation the contact: calibration true, indenter (the
+    trajectory's), max_depth_mm, and from `spec` pad_mm, curvature_radius_mm, spacing_mm
+    (compensation "contact" computes contact areas on that grid) and mu, the friction
+    coefficient of its catalogue material (`materials`; the capture does not measure it), as
+    calibrate records them for the twin.
+    """
+    from stages.sim.sensors import material_of
+    unknown = set(session or {}) - set(CALIBRATION_SESSION)
+    if unknown:
+        raise InputError(f"capture_calibration[{sensor}]: unknown session setting(s) {', '.join(sorted(unknown))} "
+                         f"(known: {', '.join(CALIBRATION_SESSION)})")
+    settings = {**CALIBRATION_SESSION, **dict(session or {})}
+    devices = _check_devices(devices)
+    if not any(d in devices for d in FORCE_DEVICES):
+        raise InputError(f"capture_calibration[{sensor}]: devices {devices} read no force: add one of "
+                         f"{' / '.join(FORCE_DEVICES)}")
+    missing = [k for k in ("max_depth_mm", "pad_mm", "spacing_mm", "material") if k not in spec]
+    if missing:
+        raise InputError(f"capture_calibration[{sensor}]: its sensors entry lacks {', '.join(missing)}")
+    missing = [k for k in ("depth", "indenters", "indenter_id", "contact_id") if k not in trajectory]
+    if missing:
+        raise InputError(f"capture_calibration[{sensor}]: the trajectory lacks {', '.join(missing)}")
+    depth = np.asarray(trajectory["depth"], float)
+    deepest = float(np.max(depth)) if depth.size else 0.0
+    if not deepest > 0:
+        raise InputError(f"capture_calibration[{sensor}]: the calibration trajectory never presses (deepest {deepest} mm)")
+    mu = material_of(spec, materials).get("mu")
+    names = np.asarray(trajectory["indenters"]).astype(str)
+    indenter = str(names[np.asarray(trajectory["indenter_id"])[0]])
+    max_depth = float(spec["max_depth_mm"])
+    t = {k: np.asarray(trajectory[k]) for k in ("position", "depth", "shift", "phase", "contact_id",
+                                                "indenter_id", "paired", "indenters") if k in trajectory}
+    t["movement_id"] = t["contact_id"]              # frame_stride 1 keeps every frame of a contact
+    run = {"name": settings["name"] or f"{sensor}-calibration", "contacts_per_indenter": 0,
+           "frame_stride": 1, "depth_scale": max_depth / deepest, "max_depth_mm": max_depth,
+           "chunk_frames": int(settings["chunk_frames"]), "tool_change": settings["tool_change"]}
+    final = yield from capture(trajectory=t, devices=devices, robot=robot, netft=netft, serial_ft=serial_ft,
+                               camera=camera, xela=xela, slcan=slcan, sensor=sensor, rate_hz=rate_hz,
+                               staging_dir=staging_dir, emulate=emulate, session=run,
+                               indenters=indenters, spec=spec, materials=materials)
+    final["attrs"].update({"calibration": True, "indenter": indenter, "max_depth_mm": max_depth,
+                           "pad_mm": [float(v) for v in spec["pad_mm"]],
+                           "curvature_radius_mm": float(spec.get("curvature_radius_mm", 0.0)),
+                           "spacing_mm": float(spec["spacing_mm"]),
+                           **({} if mu is None else {"mu": float(mu)})})
+    return final

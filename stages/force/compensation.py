@@ -157,10 +157,24 @@ def fit_curves(normalised_depth, force, loading, phase=None) -> Curves:
 
 
 def curves_from_calibration(calibration: Mapping) -> Curves:
-    """Curves of a calibrate[sensor] artifact (or a dict with the same arrays)."""
+    """Curves of a calibrate[sensor] artifact, a capture_calibration[sensor] one or a dict with
+    the same arrays: normalised_depth, force, and loading or phase (loading_mask of it; a
+    captured calibration records the phase only)."""
+    loading, phase = _calibration_phases(calibration)
     return fit_curves(np.asarray(calibration["normalised_depth"]), np.asarray(calibration["force"]),
-                      np.asarray(calibration["loading"]),
-                      np.asarray(calibration["phase"]) if "phase" in calibration else None)
+                      loading, phase)
+
+
+def _calibration_phases(calibration: Mapping) -> tuple[np.ndarray, np.ndarray | None]:
+    """(loading (N,) bool, phase (N,) or None) of a calibration (curves_from_calibration)."""
+    missing = [k for k in ("normalised_depth", "force") if k not in calibration]
+    if "loading" not in calibration and "phase" not in calibration:
+        missing.append("loading or phase")
+    if missing:
+        raise ValueError(f"calibration: no {', '.join(missing)} (a calibrate or capture_calibration artifact?)")
+    phase = np.asarray(calibration["phase"]) if "phase" in calibration else None
+    loading = np.asarray(calibration["loading"]) if "loading" in calibration else loading_mask(phase)
+    return loading, phase
 
 
 def loading_mask(phase) -> np.ndarray:
@@ -302,7 +316,7 @@ def curves_figure(calibrations: Mapping[str, tuple[Mapping, Curves]], title: str
     for k, (name, (cal, curves)) in enumerate(calibrations.items()):
         colour = f"C{k}"
         d, f = np.asarray(cal["normalised_depth"]), np.abs(np.asarray(cal["force"])[:, 2])
-        load, unload = _branches(cal["loading"], cal["phase"] if "phase" in cal else None)
+        load, unload = _branches(*_calibration_phases(cal))
         ax.plot(d[load], f[load], ".", color=colour, ms=3, alpha=0.6)
         ax.plot(d[unload], f[unload], "x", color=colour, ms=3, alpha=0.6)
         ax.plot(grid, np.polyval(curves.loading, grid), "-", color=colour, label=f"{name} loading")

@@ -182,10 +182,15 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
                  target_markers: Mapping | None = None, indenters: Mapping | None = None,
                  source_spec: Mapping | None = None, target_spec: Mapping | None = None,
                  align: str = "none", align_pairs: int = 0, splice: str = "none",
-                 readout: str = "none", checkpoint: str | None = None) -> dict:
+                 readout: str = "none", captured_calibrations: Mapping | None = None,
+                 checkpoint: str | None = None) -> dict:
     """Node `transfer[source,target]`: regressors on the source's sequences translated into the
     target's style (images; reference = the target's), trained with the source's labels
     (genforce) and with the labels compensated to the target's material (genforce_comp).
+
+    The material prior of each sensor is its `calibrate` artifact (`source_calibration`,
+    `target_calibration`: the twin's), or its `capture_calibration` where
+    `captured_calibrations` (sensor -> artifact) holds one (attrs calibration: which).
 
     Both follow the same two-stage schedule from the same seed and differ only in their labels:
     stage 1 trains `steps` steps at `lr` on all translated training contacts (contacts of
@@ -222,6 +227,8 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     from stages.force.train import ContactSequence, fit_two_stage, loss_figure, make_sequences
     name = f"transfer[{source}->{target}]"
     _check_align(align, target_markers, name)
+    (source_calibration, target_calibration), calibration_from = _calibrations(
+        (source_calibration, target_calibration), (source_spec, target_spec), captured_calibrations)
     model_cfg, train = _split_config(config)
     src_curves = curves_from_calibration(source_calibration)
     tgt_curves = curves_from_calibration(target_calibration)
@@ -280,6 +287,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     return {"genforce": weights, "genforce_comp": weights_comp, **extra,
             "attrs": {"config": genforce.config, "train": train, "source": source, "target": target,
                       "compensation_identity": bool(identity), "compensation": compensation,
+                      **({"calibration": calibration_from} if calibration_from else {}),
                       **({"shear_readout": readout_info} if readout_info else {}),
                       "compensation_depth": compensation_depth, "depth_ratio": k, "align": aligned,
                       "spliced": spliced,
@@ -293,6 +301,22 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
                       "history": kept},
             "timing": timing,
             "figures": figures}
+
+
+def _calibrations(twins, specs, captured: Mapping | None) -> tuple[tuple, dict]:
+    """The (source, target) calibrations a transfer compensates with: each sensor's captured
+    calibration (captured: sensor -> capture_calibration artifact) where there is one, else its
+    twin's calibrate artifact; and {"source"|"target": "capture_calibration[sensor=...]"} for
+    the captured ones (empty without)."""
+    chosen, which = [], {}
+    for end, twin, spec in zip(("source", "target"), twins, specs):
+        sensor = None if spec is None else spec.get("sensor")
+        if captured and sensor in captured:
+            chosen.append(captured[sensor])
+            which[end] = f"capture_calibration[sensor={sensor}]"
+        else:
+            chosen.append(twin)
+    return tuple(chosen), which
 
 
 def _readout_labels(readout, mode, translated, target_calibration, comp, k, indenters, target_markers,
