@@ -287,6 +287,10 @@ class Graph:
                                         f"{sorted(bad)} (its grid: {list(grid) or 'none'})")
             match = [i.name for i in instances.values() if i.node.name == node and
                      all(_fmt(dict(i.bindings)[k]) == v for k, v in (sel or {}).items())]
+            if not match and not any(i.node.name == node for i in instances.values()):
+                grids = [spec for spec in self.nodes[node].grid.values() if isinstance(spec, str)]
+                raise PipelineError(f"unknown target '{t}': '{node}' has no instance for these params "
+                                    f"(its grid {' / '.join(grids) or ''} is empty)")
             if not match:
                 raise PipelineError(f"unknown target '{t}': no instance of '{node}' has those values")
             chosen += [m for m in match if m not in chosen]

@@ -59,6 +59,22 @@ def test_bad_targets(target, message):
         g.select(g.expand(PARAMS), [target])
 
 
+def test_a_node_whose_grid_is_empty_is_named_as_such():
+    """A grid over an empty list (a hardware node with nothing listed yet) gives no instance:
+    naming it as a target says which list is empty, and a gather of it gathers nothing."""
+    g = graph()
+    g.node("capture", "m:c", grid={"sensor": "captured"})
+    g.node("use", "m:u", inputs={"got": "capture[*]"})
+    inst = g.expand({**PARAMS, "captured": []})
+    assert inst["use"].inputs == {"got": {}}
+    with pytest.raises(PipelineError, match=r"unknown target 'capture': 'capture' has no instance for these "
+                                            r"params \(its grid captured is empty\)"):
+        g.select(inst, ["capture"])
+    inst = g.expand({**PARAMS, "captured": ["gs-a"]})
+    assert inst["use"].inputs == {"got": {"gs-a": "capture[sensor=gs-a]"}}
+    assert g.select(inst, ["capture"]) == ["capture[sensor=gs-a]"]
+
+
 def test_graph_errors():
     g = Graph()
     g.node("a", "m:a", inputs={"x": "b"})
