@@ -152,7 +152,7 @@ def test_transfers_compensate_with_a_captured_calibration(ci_store):
     twin = attrs()
     listed = ("--profile", "ci", "--store", store, "-p", "capture.calibration.sensors=[tactip]")
     p = pipeline("run", target, *listed, check=False)
-    assert p.returncode == 1
+    assert p.returncode == 2                                      # the CLI's exit status for a refusal
     assert ("source node capture_calibration[sensor=tactip] has no artifact for these params; capture "
             "it explicitly with `pipeline run 'capture_calibration[sensor=tactip]'`") in p.stdout + p.stderr
     pipeline("run", "capture_calibration", *listed)
