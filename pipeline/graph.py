@@ -290,7 +290,7 @@ class Graph:
             if not match and not any(i.node.name == node for i in instances.values()):
                 grids = [spec for spec in self.nodes[node].grid.values() if isinstance(spec, str)]
                 raise PipelineError(f"unknown target '{t}': '{node}' has no instance for these params "
-                                    f"(its grid {' / '.join(grids) or ''} is empty)")
+                                    f"(its grid {' / '.join(grids)} is empty)")
             if not match:
                 raise PipelineError(f"unknown target '{t}': no instance of '{node}' has those values")
             chosen += [m for m in match if m not in chosen]

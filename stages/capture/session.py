@@ -481,7 +481,7 @@ def capture_calibration(*, trajectory: Mapping, sensor: str, spec: Mapping, devi
     deepest = float(np.max(depth)) if depth.size else 0.0
     if not deepest > 0:
         raise InputError(f"capture_calibration[{sensor}]: the calibration trajectory never presses (deepest {deepest} mm)")
-    mu = material_of(spec, materials).get("mu")
+    mu = material_of(spec, materials)["mu"]
     names = np.asarray(trajectory["indenters"]).astype(str)
     indenter = str(names[np.asarray(trajectory["indenter_id"])[0]])
     max_depth = float(spec["max_depth_mm"])
@@ -498,6 +498,5 @@ def capture_calibration(*, trajectory: Mapping, sensor: str, spec: Mapping, devi
     final["attrs"].update({"calibration": True, "indenter": indenter, "max_depth_mm": max_depth,
                            "pad_mm": [float(v) for v in spec["pad_mm"]],
                            "curvature_radius_mm": float(spec.get("curvature_radius_mm", 0.0)),
-                           "spacing_mm": float(spec["spacing_mm"]),
-                           **({} if mu is None else {"mu": float(mu)})})
+                           "spacing_mm": float(spec["spacing_mm"]), "mu": mu})
     return final

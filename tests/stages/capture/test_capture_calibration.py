@@ -5,7 +5,7 @@ import os
 import numpy as np
 import pytest
 
-from stages.common import InputError
+from stages.common import InputError, attrs_of
 from tests.helpers import concat, drain
 
 SENSOR = "gelsight-r10"
@@ -52,11 +52,6 @@ def twin(ci, calibration_inputs):
                      materials=ci["materials"])
 
 
-def twin_attrs(art):
-    from stages.common import attrs_of
-    return attrs_of(art)
-
-
 def test_captured_calibration_presses_the_sensors_depth_and_reads_the_twins_force(captured, twin, ci):
     arrays, final = captured
     # every calibration frame, pressed to the sensor's max_depth_mm (1.4 mm), not the trajectory's
@@ -73,7 +68,7 @@ def test_captured_calibration_presses_the_sensors_depth_and_reads_the_twins_forc
     assert attrs["max_depth_mm"] == spec["max_depth_mm"] and attrs["spacing_mm"] == spec["spacing_mm"]
     assert attrs["pad_mm"] == spec["pad_mm"] and attrs["curvature_radius_mm"] == spec["curvature_radius_mm"]
     # friction is not measured: the catalogue material's, as the twin's calibrate records it
-    assert attrs["mu"] == ci["materials"][spec["material"]]["mu"] == twin_attrs(twin)["mu"]
+    assert attrs["mu"] == ci["materials"][spec["material"]]["mu"] == attrs_of(twin)["mu"]
 
 
 def test_captured_calibration_gives_the_twins_compensation_curves(captured, twin):
