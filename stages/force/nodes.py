@@ -23,6 +23,7 @@ from stages.common import attrs_of, split_timing
 TRAIN_DEFAULTS = {
     "seq_len": 32,                # longest training window (frames)
     "finetune_lr_factor": 0.1,    # fine-tune stage learning rate = lr * factor
+    "mirror": False,              # train on each contact's mirror images too (train.mirrored)
 }
 METHODS = ("source_only", "genforce", "genforce_comp", "oracle")
 # diagnostic row of the studies: the source's test labels compensated as transfer compensates
@@ -51,6 +52,9 @@ def _split_config(config: Mapping | None) -> tuple[dict, dict]:
     """User config -> (model config, training options)."""
     config = dict(config or {})
     train = {k: config.pop(k, v) for k, v in TRAIN_DEFAULTS.items()}
+    if not isinstance(train["mirror"], bool):
+        from stages.common import InputError
+        raise InputError(f"force config mirror must be true or false, got {train['mirror']!r}")
     from stages.force.model import model_config
     return model_config(config), train
 
@@ -164,8 +168,8 @@ def fit_own(*, markers: Mapping, skin: str, train_indenters: Sequence[str], conf
                           reference, model_cfg)
     ckpt = _checkpoint(checkpoint)
     model, history = fit(seqs, model_cfg, steps=int(steps), batch_size=int(batch_size), lr=float(lr),
-                         seed=int(seed), seq_len=int(train["seq_len"]), desc=f"own[{skin}]",
-                         checkpoint=ckpt, label="own")
+                         seed=int(seed), seq_len=int(train["seq_len"]), mirror=train["mirror"],
+                         desc=f"own[{skin}]", checkpoint=ckpt, label="own")
     model.set_reference(reference)
     kept, timing = _split_timing(history, ckpt)
     return {"weights": to_arrays(model),
@@ -250,7 +254,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     seqs = make_sequences(images, [force[a:b] for a, b in seq_runs], reference, model_cfg)
     kwargs = dict(steps=int(steps), finetune_steps=int(finetune_steps), batch_size=int(batch_size),
                   lr=float(lr), seed=int(seed), seq_len=int(train["seq_len"]),
-                  finetune_lr_factor=float(train["finetune_lr_factor"]))
+                  finetune_lr_factor=float(train["finetune_lr_factor"]), mirror=train["mirror"])
     ckpt = _checkpoint(checkpoint)
     genforce, hist = fit_two_stage(seqs, model_cfg, desc=f"{name} genforce", checkpoint=ckpt,
                                    label="genforce", **kwargs)
@@ -408,7 +412,8 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
     model, history = fit_two_stage(seqs, model_cfg, steps=int(steps), finetune_steps=int(finetune_steps),
                                    batch_size=int(batch_size), lr=float(lr), seed=int(seed),
                                    seq_len=int(train["seq_len"]),
-                                   finetune_lr_factor=float(train["finetune_lr_factor"]), desc=name,
+                                   finetune_lr_factor=float(train["finetune_lr_factor"]),
+                                   mirror=train["mirror"], desc=name,
                                    checkpoint=ckpt, label="seed")
     model.set_reference(reference)
     models, aligned = align_models({"genforce_comp": model}, translated, target_markers, train_indenters,

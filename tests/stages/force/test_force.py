@@ -13,9 +13,9 @@ from stages.force.compensation import (Curves, compensate, curves_from_calibrati
 from stages.force.metrics import METRICS, force_metrics
 from stages.force.model import (ForceRegressor, MeanPredictor, StreamingPredictor, from_arrays, load_model,
                                 load_predictor, model_config, predict_contacts, predict_sequence,
-                                resolve_range, to_arrays)
+                                mirror_group, resolve_range, to_arrays)
 from stages.force.nodes import METHODS, contact_runs, fit_own, fit_transfer, fit_transfer_seed, force_study
-from stages.force.train import fit, make_sequences
+from stages.force.train import fit, make_sequences, mirrored
 
 from force_synthetic import contact_artifact
 
@@ -138,6 +138,81 @@ def test_auto_force_range_from_the_training_labels(blobs, tiny_config):
     np.testing.assert_allclose(model.force_min.numpy(), labels.min(0) - 0.05 * span, rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(model.config["force_max"], labels.max(0) + 0.05 * span, rtol=1e-4, atol=1e-5)
     assert model.normalise(labels).min() >= 0.04 and model.normalise(labels).max() <= 0.96
+
+
+def test_mirrored_copies_reverse_the_image_axes_and_negate_their_force(tiny_config):
+    image = np.zeros((2, 32, 32), np.uint8)
+    image[:, 3, 20] = 255                                  # row 3, column 20
+    force = np.array([[1.0, -2.0, -3.0], [0.5, 0.25, -1.0]], np.float32)
+    seqs = mirrored(make_sequences([image], [force], REF, tiny_config))
+    assert len(seqs) == 4
+    peaks = [tuple(np.argwhere(s.inputs[0, 0].numpy() == s.inputs[0, 0].numpy().max())[0]) for s in seqs]
+    # 32 px area-resized to 16: row 3 -> 1, column 20 -> 10; reversed: 14 and 5
+    assert peaks == [(1, 10), (1, 5), (14, 10), (14, 5)]
+    for s, sign in zip(seqs, ([1, 1], [-1, 1], [1, -1], [-1, -1])):
+        np.testing.assert_array_equal(s.force, force * np.array(sign + [1], np.float32))
+    with pytest.raises(InputError, match="mirror must be true or false, got 'yes'"):
+        fit_own(markers=contact_artifact([image], [force], ["a"]), skin="s", config={**tiny_config,
+                "mirror": "yes"}, steps=1, batch_size=1, lr=0.01, seed=0, train_indenters=None)
+
+
+def _dot_grid(xs, ys, size=32):
+    img = np.zeros((size, size), np.uint8)
+    for y in ys:
+        for x in xs:
+            img[y - 1:y + 2, x - 1:x + 2] = 255
+    return img
+
+
+def test_mirror_group_of_a_reference():
+    grid = _dot_grid([6, 13, 18, 25], [6, 13, 18, 25])          # symmetric about both centre lines
+    assert mirror_group(grid, 16) == ("x", "y", "xy")
+    assert mirror_group(_dot_grid([4, 11, 18, 25], [6, 13, 18, 25]), 16) == ("y",)   # shifted in x
+    assert mirror_group(_dot_grid([4, 11, 18, 25], [3, 10, 17, 24]), 16) == ()
+    assert mirror_group(np.zeros((32, 32), np.uint8), 16) == ()
+    with pytest.raises(ValueError, match="mirror_read 'both' is not one of"):
+        model_config({"mirror_read": "both"})
+
+
+def test_mirror_read_cancels_shear_a_symmetric_frame_cannot_carry(tiny_config):
+    torch.manual_seed(3)
+    ref = _dot_grid([6, 13, 18, 25], [6, 13, 18, 25])
+    auto, none = (ForceRegressor({**tiny_config, "mirror_read": m}) for m in ("auto", "none"))
+    none.load_state_dict(auto.state_dict())
+    # a press at the centre spreads the dots evenly: no shear; one off centre in x shears
+    images = np.stack([ref, _dot_grid([5, 12, 19, 26], [5, 12, 19, 26]), _dot_grid([8, 15, 20, 27], [6, 13, 18, 25])])
+    cid = np.zeros(3, int)
+    read, plain = (predict_contacts(m, images[:2], cid[:2], ref) for m in (auto, none))
+    assert np.abs(plain[:, :2]).max() > 0.01                  # the untrained network reads shear anyway
+    np.testing.assert_allclose(read[:, :2], 0.0, atol=1e-5)
+    np.testing.assert_array_equal(read[:, 2], plain[:, 2])   # Fz is the frame's own reading
+    # the mirror image of a contact reads the same shear with Fx reversed, and streams as it predicts
+    flipped = predict_contacts(auto, images[:, :, ::-1].copy(), cid, ref[:, ::-1].copy())
+    np.testing.assert_allclose(flipped[:, :2], predict_contacts(auto, images, cid, ref)[:, :2] * [-1, 1], atol=1e-5)
+    stream = StreamingPredictor(auto, ref)
+    assert stream.mirrors == ("x", "y", "xy")
+    np.testing.assert_allclose([stream.step(i) for i in images], predict_contacts(auto, images, cid, ref), atol=1e-5)
+    assert StreamingPredictor(auto, np.zeros((32, 32), np.uint8)).mirrors == ()
+
+
+def test_mirror_reads_shear_on_the_side_training_never_pressed(blobs, tiny_config):
+    images, forces = blobs(64, seed=3)
+    right = [k for k, f in enumerate(forces) if f[:, 0].mean() > 0]           # Fx > 0 only
+    left = [k for k in range(64) if k not in right]
+    auto = {**tiny_config, "force_min": "auto", "force_max": "auto"}
+    seqs = make_sequences([images[k] for k in right], [forces[k] for k in right], REF, auto)
+    true = np.concatenate([forces[k] for k in left])
+    mae = {}
+    for mirror in (False, True):
+        model, history = fit(seqs, auto, steps=300, batch_size=4, lr=0.1, seq_len=14, seed=0, mirror=mirror)
+        pred = predict_contacts(model, np.concatenate([images[k] for k in left]),
+                                np.repeat(np.arange(len(left)), 14), REF)
+        mae[mirror] = np.abs(pred - true).mean(0)
+        assert history["contacts"] == len(right) == 32 and history["mirror"] is mirror
+    # the mirrored labels make the shear ranges symmetric; without, Fx stops a little below 0
+    np.testing.assert_allclose(model.config["force_min"][:2], -np.asarray(model.config["force_max"][:2]))
+    assert mae[True][0] < 0.4 * mae[False][0] and mae[True][0] < 0.3, mae   # 0.23 against 0.69 N
+    assert mae[True][2] < 1.2 * mae[False][2], mae
 
 
 # ---------------------------------------------------------------------------- compensation
