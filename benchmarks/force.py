@@ -7,8 +7,11 @@ Training runs where the pipeline's does (stages.common.torch_device: the GPU whe
 one; GENFORCE_DEVICE=cpu on a GPU machine for the CPU figures); prediction runs on the CPU.
 
 Data: 30 contact sequences of 50 frames of 128x128 uint8 0/255 marker-like images (random
-dots; the speed does not depend on the content), the default-profile size.  Columns are
-torch thread counts.  Rows:
+dots laid out symmetric about both centre lines, as the twins' markers are, so that the
+default mirror read reads each frame with its three mirror images, as it does a GelSight,
+TacTip or uSkin frame; `--config '{"mirror_read": "none"}'` reads the frame alone; the speed
+does not depend on the content otherwise), the default-profile size.  Columns are torch
+thread counts.  Rows:
   train samples/s     contact windows per second (batch 4, windows up to 24 frames, padded)
   train frames/s      frames through forward + backward per second
   200-step fit (s)    one default-profile training (200 steps) at that speed
@@ -42,14 +45,17 @@ FIT_STEPS, BATCH, SEQ_LEN = 200, 4, 24          # the default profile's training
 
 
 def marker_like(rng, n, size=128):
-    """n random binary dot images (T,size,size) uint8 and a reference."""
-    base = rng.random((size // 8, size // 8)) < 0.5
+    """n random binary dot images (T,size,size) uint8 and a reference symmetric about both
+    centre lines."""
+    quarter = rng.random((size // 16, size // 16)) < 0.5
+    base = np.block([[quarter, quarter[:, ::-1]], [quarter[::-1], quarter[::-1, ::-1]]])
     ref = np.kron(base, np.ones((8, 8), bool)).astype(np.uint8) * 255
     shift = rng.integers(-2, 3, (n, 2))
     return np.stack([np.roll(ref, tuple(s), (0, 1)) for s in shift]), ref
 
 
 def bench(threads, config, steps, contacts=30, length=50):
+    """(the mirror images the model reads a frame with, {row: figure})."""
     rng = np.random.default_rng(0)
     images, ref = marker_like(rng, contacts * length)
     forces = rng.uniform(-4, 0, (contacts * length, 3)).astype(np.float32)
@@ -80,7 +86,7 @@ def bench(threads, config, steps, contacts=30, length=50):
             lat3.append(time.perf_counter() - t)
     ms = 1e3 * float(np.median(lat[10:]))
     ms3 = 1e3 * float(np.median(lat3[10:]))
-    return {"train samples/s": hist["samples_per_s"], "train frames/s": hist["frames_per_s"],
+    return model.mirrors_for(ref), {"train samples/s": hist["samples_per_s"], "train frames/s": hist["frames_per_s"],
             f"{FIT_STEPS}-step fit (s)": FIT_STEPS * hist["seconds"] / steps, "predict frames/s": predict_fps,
             "stream ms/frame": ms, "x 40 Hz": 1e3 / SENSOR_HZ / ms,
             "mean-of-3 ms/frame": ms3, "mean-of-3 x 40 Hz": 1e3 / SENSOR_HZ / ms3, "cpu/wall": cpu_ratio}
@@ -99,7 +105,10 @@ def main():
     threads = [int(t) for t in args.threads.split(",")]
     print(f"config: {json.dumps(config)}")
     print(f"torch {torch.__version__}, {os.cpu_count()} CPUs, training on {torch_device()}")
-    cols = {t: bench(t, config, args.steps) for t in threads}
+    runs = {t: bench(t, config, args.steps) for t in threads}
+    cols = {t: row for t, (_, row) in runs.items()}
+    mirrors = next(iter(runs.values()))[0]
+    print(f"read: each frame and its mirror images {list(mirrors)} in one batch")
     rows = list(next(iter(cols.values())))
     print(f"{'':20s}" + "".join(f"{f'threads={t}':>12s}" for t in threads))
     for r in rows:
