@@ -14,7 +14,7 @@ The paper's architecture (RAFT feature encoder -> ConvGRU -> residual blocks -> 
 RAFT keeps its GRU at 1/8 resolution with 128 channels; on a 2-core CPU the GRU then costs
 more than everything else, so the CPU profile downsamples once more (1/16) and narrows the
 channels: a 64x64 input trains at about 1000 frames per second on one core, and one frame
-streams in about 1 ms (benchmarks/force.py).
+streams in about 1.7 ms, 6 ms read with its three mirror images (below; benchmarks/force.py).
 
 Input representation (``input_mode``): "difference" feeds one channel, (image - reference)/255,
 so the static marker layout cancels and only marker motion remains; "stack" feeds the image and
