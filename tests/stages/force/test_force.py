@@ -185,7 +185,7 @@ def test_mirror_read_cancels_shear_a_symmetric_frame_cannot_carry(tiny_config):
     read, plain = (predict_contacts(m, images[:2], cid[:2], ref) for m in (auto, none))
     assert np.abs(plain[:, :2]).max() > 0.01                  # the untrained network reads shear anyway
     np.testing.assert_allclose(read[:, :2], 0.0, atol=1e-5)
-    np.testing.assert_array_equal(read[:, 2], plain[:, 2])   # Fz is the frame's own reading
+    np.testing.assert_allclose(read[:, 2], plain[:, 2], atol=1e-5)   # Fz: the frame's own reading
     # the mirror image of a contact reads the same shear with Fx reversed, and streams as it predicts
     flipped = predict_contacts(auto, images[:, :, ::-1].copy(), cid, ref[:, ::-1].copy())
     np.testing.assert_allclose(flipped[:, :2], predict_contacts(auto, images, cid, ref)[:, :2] * [-1, 1], atol=1e-5)
