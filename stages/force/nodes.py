@@ -187,7 +187,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
                  source_spec: Mapping | None = None, target_spec: Mapping | None = None,
                  align: str = "none", align_pairs: int = 0, splice: str = "none",
                  readout: str = "none", captured_calibrations: Mapping | None = None,
-                 checkpoint: str | None = None) -> dict:
+                 linear_fz: Mapping | None = None, checkpoint: str | None = None) -> dict:
     """Node `transfer[source,target]`: regressors on the source's sequences translated into the
     target's style (images; reference = the target's), trained with the source's labels
     (genforce) and with the labels compensated to the target's material (genforce_comp).
@@ -221,6 +221,9 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     translations they are paired with in the training sequences (splice_paired), keeping the
     source's labels; "mix" trains on each contact as translated and as spliced
     (_training_images).
+    `linear_fz` (a skin's signal source, `target_spec["source"]` -> weight): both models read
+    Fz partly as a linear read of the image's statistics (fit_linear_fz_read; attrs linear_fz),
+    weighted so; a source it does not name, weight 0, reads the network's Fz alone.
     `checkpoint` (the
     engine's): an interrupted node re-runs none of its finished fits and resumes the one it
     was in (stages.force.train.Checkpoint).
@@ -270,6 +273,13 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
         models["genforce_comp"] = genforce_comp
     models, aligned = align_models(models, translated, target_markers, train_indenters, align_pairs,
                                    align, name)
+    weight = linear_fz_weight(linear_fz, target_spec, name)
+    linear_info = {}
+    if weight:
+        labels = {"genforce": force} if identity else {"genforce": force, "genforce_comp": comp}
+        for m, f in labels.items():
+            linear_info[m] = fit_linear_fz_read(models[m], translated, runs, f, target_markers,
+                                                train_indenters, align_pairs, weight)
     extra = {}
     if read_on is not None:
         frames, rows, shear = read_on
@@ -294,7 +304,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
                       **({"calibration": calibration_from} if calibration_from else {}),
                       **({"shear_readout": readout_info} if readout_info else {}),
                       "compensation_depth": compensation_depth, "depth_ratio": k, "align": aligned,
-                      "spliced": spliced,
+                      "spliced": spliced, **({"linear_fz": linear_info} if linear_info else {}),
                       "shear_ratio": shear_ratio(src_curves, tgt_curves, compensation, k),
                       "force_range": {m: {"min": mdl.config["force_min"], "max": mdl.config["force_max"]}
                                       for m, mdl in models.items()},
@@ -418,6 +428,11 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
     model.set_reference(reference)
     models, aligned = align_models({"genforce_comp": model}, translated, target_markers, train_indenters,
                                    align_pairs, align, name)
+    linear = info.get("linear_fz") or {}
+    linear = linear.get("genforce_comp", linear.get("genforce"))
+    if linear:                           # the same labels give the same linear read: the transfer's
+        models["genforce_comp"].set_linear_fz(linear["coef"], float(linear["intercept"]),
+                                              float(linear["weight"]))
     readout = {}
     if "readout_shear" in transfer:
         frames, rows = _paired_rows(translated, target_markers, train_indenters, align_pairs)
@@ -542,6 +557,53 @@ def _target_predictions(model, target_markers: Mapping, rows: np.ndarray) -> np.
     pred = predict_contacts(model, np.asarray(target_markers["images"][read.tolist()]), cid[read],
                             np.asarray(target_markers["reference"]))
     return pred[np.searchsorted(read, np.asarray(rows, int))]
+
+
+def linear_fz_weight(linear_fz: Mapping | None, target_spec: Mapping | None, name: str) -> float:
+    """The weight of the linear Fz read for a target: `linear_fz` (signal source -> weight in
+    [0, 1]) at the target skin's `source` ("render", "taxels"); 0 where it names none."""
+    from stages.common import InputError
+    if not linear_fz:
+        return 0.0
+    if not isinstance(linear_fz, Mapping):
+        raise InputError(f"{name}: linear_fz must map a skin's signal source to a weight, got {linear_fz!r}")
+    source = str((target_spec or {}).get("source", ""))
+    weight = linear_fz.get(source, 0.0)
+    if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not 0.0 <= float(weight) <= 1.0:
+        raise InputError(f"{name}: linear_fz[{source!r}] must be a number in [0, 1], got {weight!r}")
+    return float(weight)
+
+
+def fit_linear_fz_read(model, translated: Mapping, runs, force: np.ndarray, target_markers: Mapping | None,
+                       indenters, pairs: int, weight: float) -> dict:
+    """Give `model` a linear Fz read (model.fit_linear_fz) weighted `weight`: fitted on the
+    translated frames of `runs` and their labels `force` (N,3; the rows of `translated`), each
+    statistic scaled by how the target's own frames show it against the translations at the
+    location-paired frames (_paired_rows: `pairs` of them, as the alignment reads; none without
+    `target_markers`).  The network's Fz is bounded by its training labels' range (the
+    sigmoid); the linear read is not, and where the marker image is drawn from taxel signals
+    (a uSkin dot's area grows with its taxel's normal count) the image's change is nearly
+    linear in the normal force.  Returns the fit's info, with weight."""
+    from stages.force.model import fit_linear_fz, image_statistics, prepare
+    from stages.m2m.data import take_rows
+    cfg = model.config
+    reference = np.asarray(translated["reference"])
+    rows = np.concatenate([np.arange(a, b) for a, b in runs])
+    stats = np.concatenate([image_statistics(prepare(im, reference, cfg), cfg["input_mode"]).numpy()
+                            for im in _read_runs(translated, "images", runs)])
+    paired = {}
+    if target_markers is not None and "images" in target_markers:
+        _, prow = _paired_rows(translated, target_markers, indenters, pairs)
+        if prow.shape[1]:
+            paired = {"translated": image_statistics(prepare(take_rows(translated["images"], prow[0]),
+                                                             reference, cfg), cfg["input_mode"]).numpy(),
+                      "target": image_statistics(prepare(take_rows(target_markers["images"], prow[1]),
+                                                         np.asarray(target_markers["reference"]), cfg),
+                                                 cfg["input_mode"]).numpy()}
+    coef, intercept, info = fit_linear_fz(stats, np.asarray(force)[rows, 2], **paired)
+    model.set_linear_fz(coef, intercept, weight)
+    return {**info, "coef": coef.tolist(), "intercept": intercept, "weight": float(weight),
+            "pairs": int(len(paired.get("target", ())))}
 
 
 def shear_readout(model, target_markers: Mapping, rows: np.ndarray, shear: np.ndarray) -> tuple[float, float]:
