@@ -18,6 +18,8 @@ thread counts.  Rows:
   predict frames/s    predict_contacts over the 1500 frames (contacts batched, state reset)
   stream ms/frame     StreamingPredictor.step latency (median over 200 frames)
   x 40 Hz             how many times faster than a 40 Hz sensor (25 ms per frame) streaming is
+  +linear Fz ms/frame the same model streaming with the linear Fz read (set_linear_fz), as the
+                      models transferred onto the uSkins read
   mean-of-3 ms/frame  MeanPredictor over 3 streaming models (the control study's ensemble)
   mean-of-3 x 40 Hz   the same against a 40 Hz sensor
   cpu/wall            process CPU time over wall time while training: about the thread count
@@ -35,8 +37,8 @@ import numpy as np                                                              
 import torch                                                                    # noqa: E402
 
 from benchmarks.summary import record                                           # noqa: E402
-from stages.force.model import (MeanPredictor, StreamingPredictor, model_config,  # noqa: E402
-                                predict_contacts)
+from stages.force.model import (MeanPredictor, StreamingPredictor, from_arrays,   # noqa: E402
+                                model_config, predict_contacts, to_arrays)
 from stages.common import torch_device, torch_threads                           # noqa: E402
 from stages.force.train import fit, make_sequences                              # noqa: E402
 
@@ -78,6 +80,14 @@ def bench(threads, config, steps, contacts=30, length=50):
             t = time.perf_counter()
             stream.step(img)
             lat.append(time.perf_counter() - t)
+        linear = from_arrays(to_arrays(model), model.config)      # with the linear Fz read
+        linear.set_linear_fz([-30.0, -5.0, 10.0, 2.0], 0.5, 0.5)
+        stream_lin = StreamingPredictor(linear)
+        lat_lin = []
+        for img in images[:200]:
+            t = time.perf_counter()
+            stream_lin.step(img)
+            lat_lin.append(time.perf_counter() - t)
         mean3 = MeanPredictor([StreamingPredictor(model) for _ in range(3)])
         lat3 = []
         for img in images[:200]:
@@ -89,6 +99,7 @@ def bench(threads, config, steps, contacts=30, length=50):
     return model.mirrors_for(ref), {"train samples/s": hist["samples_per_s"], "train frames/s": hist["frames_per_s"],
             f"{FIT_STEPS}-step fit (s)": FIT_STEPS * hist["seconds"] / steps, "predict frames/s": predict_fps,
             "stream ms/frame": ms, "x 40 Hz": 1e3 / SENSOR_HZ / ms,
+            "+linear Fz ms/frame": 1e3 * float(np.median(lat_lin[10:])),
             "mean-of-3 ms/frame": ms3, "mean-of-3 x 40 Hz": 1e3 / SENSOR_HZ / ms3, "cpu/wall": cpu_ratio}
 
 

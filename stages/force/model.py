@@ -45,6 +45,16 @@ weights read both ways), mean MAE none -> auto: hetero three-seed ensemble 1.365
 (GelSight -> z-only uSkin Fx R2 0.76 -> 0.81), homo 0.659 -> 0.620 N, material 0.621 ->
 0.569 N, the oracles 0.907 -> 0.896 N.
 
+Linear Fz read (:meth:`ForceRegressor.set_linear_fz`, off unless set): the network's normal
+force cannot leave its training labels' range (the sigmoid), and a contact that presses harder
+than any it trained on reads at that range's end (the wave on uSkin: 55.9 N true, read at 36
+N).  A model can read Fz as a weighted mean of the network's reading and a linear read of
+:func:`image_statistics` (how much the frame brightens and darkens against the reference, and
+over how many pixels), which is not clipped.  Where marker images are drawn from taxel signals
+(a uSkin dot's area grows with its taxel's normal count) that change is nearly linear in the
+normal force; where markers move (GelSight, TacTip) it is not, and the read is left off
+(stages.force.nodes.fit_linear_fz_read fits it, :func:`fit_linear_fz`).
+
 Outputs are min-max normalised per axis over [force_min, force_max] (labels outside are
 clipped), so the sigmoid's range is the force range.  force_min = force_max = "auto" (the
 paper's min-max normalisation of the training labels) has train.fit set the range from the

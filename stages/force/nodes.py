@@ -234,6 +234,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     from stages.force.train import ContactSequence, fit_two_stage, loss_figure, make_sequences
     name = f"transfer[{source}->{target}]"
     _check_align(align, target_markers, name)
+    weight = linear_fz_weight(linear_fz, target_spec, name)
     (source_calibration, target_calibration), calibration_from = _calibrations(
         (source_calibration, target_calibration), (source_spec, target_spec), captured_calibrations)
     model_cfg, train = _split_config(config)
@@ -273,7 +274,6 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
         models["genforce_comp"] = genforce_comp
     models, aligned = align_models(models, translated, target_markers, train_indenters, align_pairs,
                                    align, name)
-    weight = linear_fz_weight(linear_fz, target_spec, name)
     linear_info = {}
     if weight:
         labels = {"genforce": force} if identity else {"genforce": force, "genforce_comp": comp}
@@ -576,7 +576,7 @@ def linear_fz_weight(linear_fz: Mapping | None, target_spec: Mapping | None, nam
 
 def fit_linear_fz_read(model, translated: Mapping, runs, force: np.ndarray, target_markers: Mapping | None,
                        indenters, pairs: int, weight: float) -> dict:
-    """Give `model` a linear Fz read (model.fit_linear_fz) weighted `weight`: fitted on the
+    """Give `model` a linear Fz read (stages.force.model.fit_linear_fz) weighted `weight`: fitted on the
     translated frames of `runs` and their labels `force` (N,3; the rows of `translated`), each
     statistic scaled by how the target's own frames show it against the translations at the
     location-paired frames (_paired_rows: `pairs` of them, as the alignment reads; none without

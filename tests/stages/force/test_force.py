@@ -1060,3 +1060,108 @@ def test_fit_transfer_shear_readout_scales_the_shear_it_reads(skins, tiny_config
         np.testing.assert_allclose(one["genforce"][k], v * gain if k in ("force_min", "force_max") else v, rtol=1e-6)
     with pytest.raises(InputError, match=r"transfer\[B->A\]: readout 'axes' is not one of \('none', 'shear'\)"):
         fit_transfer(target_calibration=deeper, readout="axes", checkpoint="/nonexistent/x", **kw)
+
+
+# ---------------------------------------------------------------------------- linear Fz read
+
+def test_image_statistics_of_a_known_change(tiny_config):
+    """A frame that brightens 8 of 64 pixels by 0.5 and darkens 4 by 0.02 (under the 0.05
+    threshold): mean brightening 4/64, darkening 0.08/64, shares 8/64 and 0."""
+    from stages.force.model import image_statistics
+    x = torch.zeros(2, 1, 8, 8)
+    x[1, 0, 0, :] = 0.5
+    x[1, 0, 1, :4] = -0.02
+    s = image_statistics(x).numpy()
+    np.testing.assert_allclose(s, [[0, 0, 0, 0], [4 / 64, 0.08 / 64, 8 / 64, 0]], rtol=1e-6, atol=1e-9)
+    stacked = torch.cat([x + 0.25, torch.full_like(x, 0.25)], 1)     # "stack": image and reference
+    np.testing.assert_allclose(image_statistics(stacked, "stack").numpy(), s, rtol=1e-5, atol=1e-7)
+
+
+def test_fit_linear_fz_recovers_a_linear_law_and_the_targets_scale():
+    """Labels linear in the statistics give back their coefficients; where the target shows a
+    statistic at twice the translations' size (paired frames), that coefficient halves, so the
+    read of the target's frames gives the labels."""
+    from stages.force.model import fit_linear_fz
+    rng = np.random.default_rng(0)
+    X = rng.uniform(0, 0.2, (200, 4))
+    c, b = np.array([-30.0, -5.0, 10.0, 2.0]), 0.7
+    coef, intercept, info = fit_linear_fz(X, X @ c + b)
+    np.testing.assert_allclose(coef, c, rtol=1e-3)
+    assert abs(intercept - b) < 1e-3 and info["r2"] > 0.9999 and info["scale"] == [1.0] * 4
+    paired = X[:30]
+    coef2, intercept2, info2 = fit_linear_fz(X, X @ c + b, translated=paired, target=paired * [2, 1, 1, 1])
+    np.testing.assert_allclose(info2["scale"], [2, 1, 1, 1], rtol=1e-6)
+    np.testing.assert_allclose(coef2, c / [2, 1, 1, 1], rtol=1e-3)
+    target_frames = X * [2, 1, 1, 1]
+    np.testing.assert_allclose(target_frames @ coef2 + intercept2, X @ c + b, atol=1e-2)
+    with pytest.raises(ValueError, match=r"fit_linear_fz: statistics \(200, 3\) and labels \(200,\)"):
+        fit_linear_fz(X[:, :3], X @ c)
+
+
+def test_linear_fz_read_blends_fz_past_the_range_and_leaves_shear(trained):
+    """With weight w the model's Fz is (1 - w) x the network's + w x the linear read, which is
+    not clipped to the force range; shear is unchanged; streaming reads the same; the read
+    travels with the arrays, and arrays stored without it load with the network's Fz alone."""
+    from stages.force.model import image_statistics, prepare
+    model, _, images, _, _ = trained
+    seq = images[0]
+    plain = predict_sequence(model, seq)
+    blended = from_arrays(to_arrays(model), model.config)
+    coef, b = np.array([-900.0, 50.0, -20.0, 0.0], np.float32), -0.5
+    blended.set_linear_fz(coef, b, 0.25)
+    got = predict_sequence(blended, seq)
+    lin = image_statistics(prepare(seq, REF, model.config)).numpy() @ coef + b
+    np.testing.assert_allclose(got[:, :2], plain[:, :2], atol=1e-6)
+    np.testing.assert_allclose(got[:, 2], 0.75 * plain[:, 2] + 0.25 * lin, atol=1e-4)
+    assert got[:, 2].min() < blended.config["force_min"][2]          # read past the range
+    stream = StreamingPredictor(blended)
+    np.testing.assert_allclose(np.stack([stream.step(f) for f in seq]), got, atol=1e-4)
+    back = from_arrays(to_arrays(blended), blended.config)
+    np.testing.assert_allclose(predict_sequence(back, seq), got, atol=1e-6)
+    old = {k: v for k, v in to_arrays(blended).items() if k not in ("fz_linear", "fz_weight")}
+    np.testing.assert_allclose(predict_sequence(from_arrays(old, model.config), seq), plain, atol=1e-6)
+    with pytest.raises(ValueError, match=r"linear Fz read: weight 1.5 is not in \[0, 1\]"):
+        blended.set_linear_fz(coef, b, 1.5)
+    with pytest.raises(ValueError, match=r"linear Fz read: 4 finite coefficients"):
+        blended.set_linear_fz(coef[:3], b, 0.5)
+
+
+def test_fit_transfer_linear_fz_on_taxel_targets_only(skins, tiny_config):
+    """linear_fz {"taxels": 0.5}: a target skin drawn from taxels gets the linear read in both
+    models (fitted on the translations, scaled on the paired frames; attrs linear_fz), a
+    rendered one none, the same weights either way; the seed models read the transfer's; a bad
+    weight is the user's one-line error before any training."""
+    kw = dict(config={**tiny_config, "seq_len": 10}, steps=4, batch_size=2, lr=0.05, seed=0,
+              train_indenters=["sphere", "prism", "cone"], source_calibration=_calibration_art(1.0),
+              target_calibration=_calibration_art(2.0), source="B", target="A", finetune_steps=0)
+    n = len(skins["A"]["force"])
+    translated = dict(skins["A"], paired=np.arange(n) % 3 == 0)
+    wider = np.maximum(translated["images"], np.roll(translated["images"], 1, axis=-1))   # wider blobs
+    target = dict(translated, images=wider)
+    taxels = fit_transfer(translated=translated, target_markers=target, align_pairs=8,
+                          linear_fz={"taxels": 0.5}, target_spec={"source": "taxels"}, **kw)
+    render = fit_transfer(translated=translated, target_markers=target, align_pairs=8,
+                          linear_fz={"taxels": 0.5}, target_spec={"source": "render"}, **kw)
+    assert "linear_fz" not in render["attrs"]
+    info = taxels["attrs"]["linear_fz"]
+    assert set(info) == {"genforce", "genforce_comp"} and info["genforce_comp"]["pairs"] == 8
+    assert info["genforce_comp"]["weight"] == 0.5 and info["genforce_comp"]["scale"] != [1.0] * 4
+    for m in ("genforce", "genforce_comp"):
+        assert float(taxels[m]["fz_weight"][0]) == 0.5 and float(render[m]["fz_weight"][0]) == 0.0
+        for k, v in render[m].items():
+            if k not in ("fz_linear", "fz_weight"):
+                np.testing.assert_array_equal(taxels[m][k], v)
+    ids = target["contact_id"]
+    a = predict_contacts(load_model(taxels, "genforce_comp"), target["images"], ids)
+    b = predict_contacts(load_model(render, "genforce_comp"), target["images"], ids)
+    np.testing.assert_array_equal(a[:, :2], b[:, :2])
+    assert np.abs(a[:, 2] - b[:, 2]).max() > 1e-3
+    transfer = json.loads(json.dumps({"attrs": taxels["attrs"]}))
+    seed = fit_transfer_seed(transfer=transfer, translated=translated, seed=0, target_markers=target,
+                             align_pairs=8, **{k: kw[k] for k in ("config", "steps", "batch_size", "lr",
+                                                                 "finetune_steps", "train_indenters")})
+    for k, v in taxels["genforce_comp"].items():
+        np.testing.assert_array_equal(seed["genforce_comp"][k], v)
+    with pytest.raises(InputError, match=r"transfer\[B->A\]: linear_fz\['taxels'\] must be a number in \[0, 1\], got 'half'"):
+        fit_transfer(translated=translated, target_markers=target, linear_fz={"taxels": "half"},
+                     target_spec={"source": "taxels"}, checkpoint="/nonexistent/x", **kw)
