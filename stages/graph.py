@@ -159,7 +159,8 @@ _FIT = {"config": "force.config", "steps": "force.steps", "batch_size": "force.b
 _ALIGN = {"align": "force.align", "align_pairs": "m2m.finetune.pairs_per_skin", "splice": "force.splice"}
 GRAPH.node("own", "stages.force.nodes:fit_own",
            inputs={"markers": "markers[skin={skin}]"},
-           params={**_FIT, "train_indenters": "splits.train_indenters"},
+           params={**_FIT, "train_indenters": "splits.train_indenters", "linear_fz": "force.linear_fz",
+                   "skin_spec": "skins.{skin}"},
            grid={"skin": "force.skins"},
            description="force regressor on a skin's own labels: source-only model and oracle")
 GRAPH.node("transfer", "stages.force.nodes:fit_transfer",

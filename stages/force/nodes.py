@@ -148,17 +148,21 @@ def _split_timing(history: Mapping, ckpt) -> tuple[dict, dict]:
 # ---------------------------------------------------------------------------- training nodes
 
 def fit_own(*, markers: Mapping, skin: str, train_indenters: Sequence[str], config: Mapping,
-            steps: int, batch_size: int, lr: float, seed: int, checkpoint: str | None = None) -> dict:
+            steps: int, batch_size: int, lr: float, seed: int, skin_spec: Mapping | None = None,
+            linear_fz: Mapping | None = None, checkpoint: str | None = None) -> dict:
     """Node `own[skin]`: the regressor on the skin's own images and labels.
 
     Trained on the contacts of `train_indenters` (source-only model when the skin is a source,
-    the oracle when it is a target).  Returns weights/..., attrs {config, skin,
-    train_indenters, history} and figures/loss.  `checkpoint` (the engine's): the training
+    the oracle when it is a target).  `linear_fz` and `skin_spec` (the skin's): its Fz read
+    as fit_transfer's models read a target of the same signal source, the linear read fitted
+    on the skin's own frames and labels (attrs linear_fz).  Returns weights/..., attrs
+    {config, skin, train_indenters, history} and figures/loss.  `checkpoint` (the engine's): the training
     resumes from there after an interruption (stages.force.train.Checkpoint).
     """
     from stages.force.model import to_arrays
     from stages.force.train import fit, loss_figure, make_sequences
     model_cfg, train = _split_config(config)
+    weight = linear_fz_weight(linear_fz, skin_spec, f"own[{skin}]")
     runs = contact_runs(markers, train_indenters)
     if not runs:
         raise ValueError(f"fit_own[{skin}]: no contacts of train_indenters {list(train_indenters)}")
@@ -171,10 +175,12 @@ def fit_own(*, markers: Mapping, skin: str, train_indenters: Sequence[str], conf
                          seed=int(seed), seq_len=int(train["seq_len"]), mirror=train["mirror"],
                          desc=f"own[{skin}]", checkpoint=ckpt, label="own")
     model.set_reference(reference)
+    linear = ({"linear_fz": fit_linear_fz_read(model, markers, runs, force, None, train_indenters, 0, weight)}
+              if weight else {})
     kept, timing = _split_timing(history, ckpt)
     return {"weights": to_arrays(model),
             "attrs": {"config": model.config, "train": train, "skin": skin,
-                      "train_indenters": list(train_indenters), "history": kept},
+                      "train_indenters": list(train_indenters), "history": kept, **linear},
             "timing": timing,
             "figures": {"loss": loss_figure({skin: history}, f"own[{skin}]")}}
 

@@ -1165,3 +1165,22 @@ def test_fit_transfer_linear_fz_on_taxel_targets_only(skins, tiny_config):
     with pytest.raises(InputError, match=r"transfer\[B->A\]: linear_fz\['taxels'\] must be a number in \[0, 1\], got 'half'"):
         fit_transfer(translated=translated, target_markers=target, linear_fz={"taxels": "half"},
                      target_spec={"source": "taxels"}, checkpoint="/nonexistent/x", **kw)
+
+
+def test_fit_own_linear_fz_on_a_taxel_skin(nodes_out, skins):
+    """The skin's own model (oracle, source-only) of a taxel-drawn skin reads Fz with the linear
+    read too, fitted on its own frames and labels (no paired frames, scale 1); the network's
+    weights are those of the plain fit."""
+    own, _, _ = nodes_out
+    kw = dict(config=own["A"]["attrs"]["config"] | own["A"]["attrs"]["train"], steps=4, batch_size=2,
+              lr=0.05, seed=0, train_indenters=["sphere", "prism", "cone"])
+    kw["config"] = {k: v for k, v in kw["config"].items() if k not in ("force_min", "force_max")}
+    out = fit_own(markers=skins["A"], skin="A", linear_fz={"taxels": 0.5}, skin_spec={"source": "taxels"}, **kw)
+    info = out["attrs"]["linear_fz"]
+    assert info["pairs"] == 0 and info["scale"] == [1.0] * 4 and info["weight"] == 0.5 and 0 < info["r2"] <= 1
+    assert float(out["weights"]["fz_weight"][0]) == 0.5 and float(own["A"]["weights"]["fz_weight"][0]) == 0.0
+    for k, v in own["A"]["weights"].items():
+        if k not in ("fz_linear", "fz_weight"):
+            np.testing.assert_array_equal(out["weights"][k], v)
+    with pytest.raises(InputError, match=r"own\[A\]: linear_fz must map a skin's signal source to a weight"):
+        fit_own(markers=skins["A"], skin="A", linear_fz=[0.5], skin_spec={"source": "taxels"}, **kw)
