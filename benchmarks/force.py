@@ -56,6 +56,16 @@ def marker_like(rng, n, size=128):
     return np.stack([np.roll(ref, tuple(s), (0, 1)) for s in shift]), ref
 
 
+def step_ms(predictor, images) -> float:
+    """Median latency (ms) of predictor.step over the frames, the first 10 left out (warm-up)."""
+    lat = []
+    for img in images:
+        t = time.perf_counter()
+        predictor.step(img)
+        lat.append(time.perf_counter() - t)
+    return 1e3 * float(np.median(lat[10:]))
+
+
 def bench(threads, config, steps, contacts=30, length=50):
     """(the mirror images the model reads a frame with, {row: figure})."""
     rng = np.random.default_rng(0)
@@ -74,32 +84,15 @@ def bench(threads, config, steps, contacts=30, length=50):
         t = time.perf_counter()
         predict_contacts(model, images, cid)
         predict_fps = len(images) / (time.perf_counter() - t)
-        stream = StreamingPredictor(model)
-        lat = []
-        for img in images[:200]:
-            t = time.perf_counter()
-            stream.step(img)
-            lat.append(time.perf_counter() - t)
         linear = from_arrays(to_arrays(model), model.config)      # with the linear Fz read
         linear.set_linear_fz([-30.0, -5.0, 10.0, 2.0], 0.5, 0.5)
-        stream_lin = StreamingPredictor(linear)
-        lat_lin = []
-        for img in images[:200]:
-            t = time.perf_counter()
-            stream_lin.step(img)
-            lat_lin.append(time.perf_counter() - t)
-        mean3 = MeanPredictor([StreamingPredictor(model) for _ in range(3)])
-        lat3 = []
-        for img in images[:200]:
-            t = time.perf_counter()
-            mean3.step(img)
-            lat3.append(time.perf_counter() - t)
-    ms = 1e3 * float(np.median(lat[10:]))
-    ms3 = 1e3 * float(np.median(lat3[10:]))
+        ms = step_ms(StreamingPredictor(model), images[:200])
+        ms_lin = step_ms(StreamingPredictor(linear), images[:200])
+        ms3 = step_ms(MeanPredictor([StreamingPredictor(model) for _ in range(3)]), images[:200])
     return model.mirrors_for(ref), {"train samples/s": hist["samples_per_s"], "train frames/s": hist["frames_per_s"],
             f"{FIT_STEPS}-step fit (s)": FIT_STEPS * hist["seconds"] / steps, "predict frames/s": predict_fps,
             "stream ms/frame": ms, "x 40 Hz": 1e3 / SENSOR_HZ / ms,
-            "+linear Fz ms/frame": 1e3 * float(np.median(lat_lin[10:])),
+            "+linear Fz ms/frame": ms_lin,
             "mean-of-3 ms/frame": ms3, "mean-of-3 x 40 Hz": 1e3 / SENSOR_HZ / ms3, "cpu/wall": cpu_ratio}
 
 

@@ -252,12 +252,10 @@ class ForceRegressor(nn.Module):
     def _linear_fz(self, y, x):
         """Normalised outputs (B,...,3) of prepared inputs x (B,...,C,S,S) with Fz blended with
         the linear read (not clipped to the force range: it reads past its labels)."""
-        w = float(self.fz_weight)
-        if w == 0.0:
-            return y
         lin = image_statistics(x, self.config["input_mode"]) @ self.fz_linear[:-1] + self.fz_linear[-1]
         lo, hi = self.force_min[2], self.force_max[2]
-        fz = (1.0 - w) * y[..., 2] + w * (lin - lo) / (hi - lo)
+        # y + w (read - y), on the weights' device without a host sync: exactly y at weight 0
+        fz = y[..., 2] + self.fz_weight[0] * ((lin - lo) / (hi - lo) - y[..., 2])
         return torch.cat([y[..., :2], fz[..., None]], -1)
 
     def _head(self, h):
