@@ -193,7 +193,8 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
                  source_spec: Mapping | None = None, target_spec: Mapping | None = None,
                  align: str = "none", align_pairs: int = 0, splice: str = "none",
                  readout: str = "none", captured_calibrations: Mapping | None = None,
-                 linear_fz: Mapping | None = None, checkpoint: str | None = None) -> dict:
+                 linear_fz: Mapping | None = None, fz_readout: str = "none",
+                 checkpoint: str | None = None) -> dict:
     """Node `transfer[source,target]`: regressors on the source's sequences translated into the
     target's style (images; reference = the target's), trained with the source's labels
     (genforce) and with the labels compensated to the target's material (genforce_comp).
@@ -230,7 +231,10 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     `linear_fz` (a skin's signal source, `target_spec["source"]` -> weight): both models read
     Fz partly as a linear read of the image's statistics (fit_linear_fz_read; attrs linear_fz),
     weighted so; a source it does not name, weight 0, reads the network's Fz alone.
-    `checkpoint` (the
+    `fz_readout` ("none", "up"): after the rest, genforce_comp's Fz is scaled by fz_readout's
+    gain, how it reads the target's own frames against the translations at the `align_pairs`
+    location-paired frames, where it reads them lower (attrs fz_readout; the seeds fit their
+    own).  `checkpoint` (the
     engine's): an interrupted node re-runs none of its finished fits and resumes the one it
     was in (stages.force.train.Checkpoint).
     """
@@ -241,6 +245,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     name = f"transfer[{source}->{target}]"
     _check_align(align, target_markers, name)
     weight = linear_fz_weight(linear_fz, target_spec, name)
+    _check_fz_readout(fz_readout, target_markers, name)
     (source_calibration, target_calibration), calibration_from = _calibrations(
         (source_calibration, target_calibration), (source_spec, target_spec), captured_calibrations)
     model_cfg, train = _split_config(config)
@@ -292,6 +297,10 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
         readout_info["gain"] = list(shear_readout(models["genforce_comp"], target_markers, rows[1], shear))
         scale_shear(models["genforce_comp"], readout_info["gain"])
         extra = {"readout_frame": frames, "readout_shear": shear}
+    fz_info = {}
+    if fz_readout != "none":
+        fz_info = _apply_fz_readout(models["genforce_comp"], translated, target_markers,
+                                    train_indenters, align_pairs, fz_readout)
     weights = to_arrays(models["genforce"])
     weights_comp = to_arrays(models["genforce_comp"])
     if identity:
@@ -309,6 +318,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
                       "compensation_identity": bool(identity), "compensation": compensation,
                       **({"calibration": calibration_from} if calibration_from else {}),
                       **({"shear_readout": readout_info} if readout_info else {}),
+                      **({"fz_readout": fz_info} if fz_info else {}),
                       "compensation_depth": compensation_depth, "depth_ratio": k, "align": aligned,
                       "spliced": spliced, **({"linear_fz": linear_info} if linear_info else {}),
                       "shear_ratio": shear_ratio(src_curves, tgt_curves, compensation, k),
@@ -401,7 +411,7 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
     target: the fan-out's values, which transfer's attrs hold too).  Returns genforce_comp
     weights and attrs {config, source, target, seed, history, align, spliced, and shear_readout
     where transfer's has one: this model's own gains against transfer's stored readout_shear
-    on the same frames}.  `align`, `align_pairs`, `splice`, `target_markers` and `checkpoint`:
+    on the same frames; fz_readout likewise, this model's own gain}.  `align`, `align_pairs`, `splice`, `target_markers` and `checkpoint`:
     as fit_transfer's."""
     from stages.force.compensation import Curves, compensate, loading_mask
     from stages.force.model import to_arrays
@@ -449,6 +459,9 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
                               np.asarray(transfer["readout_shear"], np.float32))
         scale_shear(models["genforce_comp"], gains)
         readout = {"shear_readout": {"gain": list(gains), "pairs": int(len(frames))}}
+    if info.get("fz_readout"):
+        readout["fz_readout"] = _apply_fz_readout(models["genforce_comp"], translated, target_markers,
+                                                  train_indenters, align_pairs, info["fz_readout"]["mode"])
     kept, timing = _split_timing(history, ckpt)
     return {"genforce_comp": to_arrays(models["genforce_comp"]),
             "attrs": {"config": model.config, "train": train, "source": info["source"],
@@ -462,6 +475,7 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
 CONTACT_DEPTH_TOLERANCE = 0.1
 READOUT_GAIN_RANGE = (0.25, 4.0)
 READOUT_MODES = ("none", "shear")
+FZ_READOUT_MODES = ("none", "up")
 
 
 def _pad_spec(attrs: Mapping) -> dict:
@@ -629,12 +643,56 @@ def shear_readout(model, target_markers: Mapping, rows: np.ndarray, shear: np.nd
     return gains[0], gains[1]
 
 
+def _check_fz_readout(mode, target_markers, name: str) -> None:
+    """A one-line InputError for an fz_readout mode not in FZ_READOUT_MODES, before training;
+    a ValueError where it needs the target's frames and has none."""
+    from stages.common import InputError
+    if mode not in FZ_READOUT_MODES:
+        raise InputError(f"{name}: fz_readout {mode!r} is not one of {FZ_READOUT_MODES}")
+    if mode != "none" and (target_markers is None or "images" not in target_markers):
+        raise ValueError(f"{name}: fz_readout {mode!r} needs the target's own frames (target_markers)")
+
+
+def _apply_fz_readout(model, translated, target_markers, indenters, pairs: int, mode: str) -> dict:
+    """fz_readout's gain on the `pairs` location-paired frames of `indenters`, applied to
+    `model` (scale_fz); returns attrs {mode, gain, raw, pairs}."""
+    _, rows = _paired_rows(translated, target_markers, indenters, pairs)
+    gain, raw = fz_readout(model, translated, target_markers, rows) if rows.shape[1] else (1.0, 1.0)
+    scale_fz(model, gain)
+    return {"mode": mode, "gain": gain, "raw": raw, "pairs": int(rows.shape[1])}
+
+
+def fz_readout(model, translated: Mapping, target_markers: Mapping, rows: np.ndarray) -> tuple[float, float]:
+    """(gain, raw): raw is the least-squares gain, through 0, from `model`'s Fz on the target's
+    own frames `rows[1]` to its Fz on the translations they are paired with, `rows[0]`
+    (_target_predictions of each, in its whole contact; no label is read): a model that reads the
+    target's frames at 0.8 of the translations at the same locations gets raw 1.25.  gain is
+    raw clipped to [1, READOUT_GAIN_RANGE[1]]: the read-out only raises the normal force, as
+    every model reads its unseen contacts low (module, "Fz read-out")."""
+    on_target = _target_predictions(model, target_markers, rows[1])[:, 2].astype(float)
+    on_translated = _target_predictions(model, translated, rows[0])[:, 2].astype(float)
+    den = float(np.sum(on_target ** 2))
+    raw = float(np.sum(on_target * on_translated) / den) if den > 1e-12 else 1.0
+    return round(float(np.clip(raw, 1.0, READOUT_GAIN_RANGE[1])), 6), round(raw, 6)
+
+
+def scale_fz(model, gain: float) -> None:
+    """Scale `model`'s normal force (Fz) by `gain` in place, through its force range as
+    scale_shear scales the shear (the linear Fz read, where on, is not scaled)."""
+    _scale_range(model, (1.0, 1.0, float(gain)))
+
+
 def scale_shear(model, gains) -> None:
     """Scale `model`'s shear output (Fx, Fy) by `gains` in place: its force range (force_min,
     force_max buffers and config), which its sigmoid output spans, so every reader of the
     stored model (studies, control, streaming) reads the scaled force."""
+    _scale_range(model, (float(gains[0]), float(gains[1]), 1.0))
+
+
+def _scale_range(model, gains) -> None:
+    """Scale `model`'s force range (buffers and config) per axis by `gains` (3,)."""
     import torch
-    g = torch.tensor([float(gains[0]), float(gains[1]), 1.0], dtype=model.force_min.dtype,
+    g = torch.tensor([float(v) for v in gains], dtype=model.force_min.dtype,
                      device=model.force_min.device)
     with torch.no_grad():
         model.force_min.mul_(g)

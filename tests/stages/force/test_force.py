@@ -1062,6 +1062,70 @@ def test_fit_transfer_shear_readout_scales_the_shear_it_reads(skins, tiny_config
         fit_transfer(target_calibration=deeper, readout="axes", checkpoint="/nonexistent/x", **kw)
 
 
+def test_fz_readout_gain_raises_only_and_scale_fz(trained):
+    """fz_readout: raw is the least-squares gain from the model's Fz on the target's frames to
+    its Fz on the translations paired with them; the gain raises only (clipped to [1, 4]);
+    scale_fz multiplies Fz by it and leaves the shear."""
+    from stages.force.nodes import _target_predictions, fz_readout, scale_fz
+    model, _, images, _, _ = trained
+    art = {"images": np.concatenate(images), "reference": REF,
+           "contact_id": np.repeat(np.arange(len(images)), [len(x) for x in images])}
+    full = predict_contacts(model, art["images"], art["contact_id"], REF)
+    order = np.argsort(np.abs(full[:, 2]))
+    weak, strong = order[:6], order[-6:]                       # the target reads these low, those high
+    fz = lambda rows: _target_predictions(model, art, rows)[:, 2].astype(float)
+    want = float(np.sum(fz(weak) * fz(strong)) / np.sum(fz(weak) ** 2))
+    assert want > 1.5
+    gain, raw = fz_readout(model, art, art, np.stack([strong, weak]))
+    assert raw == pytest.approx(want, rel=1e-5) and gain == pytest.approx(min(want, 4.0), rel=1e-5)
+    gain, raw = fz_readout(model, art, art, np.stack([weak, strong]))      # reads the target higher
+    assert raw == pytest.approx(1.0 / want, rel=0.5) and raw < 1.0 and gain == 1.0
+    assert fz_readout(model, art, art, np.stack([weak, weak])) == (1.0, pytest.approx(1.0, abs=1e-6))
+    copy = from_arrays(to_arrays(model), model.config)
+    scale_fz(copy, 1.5)
+    np.testing.assert_allclose(predict_contacts(copy, art["images"], art["contact_id"], REF),
+                               full * [1.0, 1.0, 1.5], rtol=1e-5, atol=1e-5)
+    assert copy.config["force_min"][:2] == model.config["force_min"][:2]
+
+
+def test_fit_transfer_fz_readout_up(skins, tiny_config):
+    """fz_readout "up": genforce_comp is fz_readout "none"'s model with its Fz range scaled by
+    max(1, raw), raw read on the paired frames without labels (attrs fz_readout); genforce is
+    untouched; a seed of the same seed reproduces it bit for bit; a bad mode is the user's
+    one-line error before any training."""
+    from stages.force.nodes import _paired_rows, fz_readout
+    kw = dict(config={**tiny_config, "seq_len": 10}, steps=40, batch_size=2, lr=0.05, seed=0,
+              train_indenters=["sphere", "prism", "cone"], source_calibration=_calibration_art(1.0),
+              target_calibration=_calibration_art(2.0), source="B", target="A", finetune_steps=0)
+    n = len(skins["A"]["force"])
+    translated = dict(skins["A"], paired=np.arange(n) % 3 == 0)
+    fainter = (np.asarray(translated["images"], np.float32) * 0.6).astype(np.uint8)   # weaker contacts
+    target = dict(translated, images=fainter)
+    common = dict(translated=translated, target_markers=target, align_pairs=8, **kw)
+    plain = fit_transfer(fz_readout="none", **common)
+    up = fit_transfer(fz_readout="up", **common)
+    assert "fz_readout" not in plain["attrs"]
+    info = up["attrs"]["fz_readout"]
+    _, rows = _paired_rows(translated, target, kw["train_indenters"], 8)
+    gain, raw = fz_readout(load_model(plain, "genforce_comp"), translated, target, rows)
+    assert info == {"mode": "up", "gain": pytest.approx(gain), "raw": pytest.approx(raw), "pairs": 8}
+    assert info["gain"] == pytest.approx(max(1.0, info["raw"])) and info["raw"] > 1.0   # fainter: read lower
+    for k, v in plain["genforce_comp"].items():
+        want = v * np.array([1.0, 1.0, gain], np.float32) if k in ("force_min", "force_max") else v
+        np.testing.assert_allclose(up["genforce_comp"][k], want, rtol=1e-6)
+    for k, v in plain["genforce"].items():
+        np.testing.assert_array_equal(up["genforce"][k], v)
+    transfer = json.loads(json.dumps({"attrs": up["attrs"]}))
+    seed = fit_transfer_seed(transfer=transfer, translated=translated, seed=0, target_markers=target,
+                             align_pairs=8, **{k: kw[k] for k in ("config", "steps", "batch_size", "lr",
+                                                                 "finetune_steps", "train_indenters")})
+    assert seed["attrs"]["fz_readout"] == info
+    for k, v in up["genforce_comp"].items():
+        np.testing.assert_array_equal(seed["genforce_comp"][k], v)
+    with pytest.raises(InputError, match=r"transfer\[B->A\]: fz_readout 'down' is not one of \('none', 'up'\)"):
+        fit_transfer(fz_readout="down", checkpoint="/nonexistent/x", **common)
+
+
 # ---------------------------------------------------------------------------- linear Fz read
 
 def test_image_statistics_of_a_known_change(tiny_config):
