@@ -411,8 +411,8 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
     target: the fan-out's values, which transfer's attrs hold too).  Returns genforce_comp
     weights and attrs {config, source, target, seed, history, align, spliced, and shear_readout
     where transfer's has one: this model's own gains against transfer's stored readout_shear
-    on the same frames; fz_readout likewise, this model's own gain}.  `align`, `align_pairs`, `splice`, `target_markers` and `checkpoint`:
-    as fit_transfer's."""
+    on the same frames; fz_readout likewise, this model's own gain}.  `align`, `align_pairs`,
+    `splice`, `target_markers` and `checkpoint`: as fit_transfer's."""
     from stages.force.compensation import Curves, compensate, loading_mask
     from stages.force.model import to_arrays
     from stages.force.train import fit_two_stage, make_sequences
@@ -668,7 +668,7 @@ def fz_readout(model, translated: Mapping, target_markers: Mapping, rows: np.nda
     (_target_predictions of each, in its whole contact; no label is read): a model that reads the
     target's frames at 0.8 of the translations at the same locations gets raw 1.25.  gain is
     raw clipped to [1, READOUT_GAIN_RANGE[1]]: the read-out only raises the normal force, as
-    every model reads its unseen contacts low (module, "Fz read-out")."""
+    every model reads its unseen contacts low (README, "Fz read-out")."""
     on_target = _target_predictions(model, target_markers, rows[1])[:, 2].astype(float)
     on_translated = _target_predictions(model, translated, rows[0])[:, 2].astype(float)
     den = float(np.sum(on_target ** 2))
