@@ -283,13 +283,19 @@ def matched_shift_gain(convert, source_markers, target_markers, indenters: Seque
                        if (fake[:, k] ** 2).sum() > 1e-12 else 1.0 for k in (0, 1))
 
 
+TILT_WEIGHTS = tuple(round(0.05 * i, 2) for i in range(41))   # the a shrink_guard tries, 0..2
+MIN_SHRINK_FRAMES = 8          # paired frames with shrunk dots on both sides it needs to judge
+
+
 def matched_tilt(convert, source_markers, target_markers, indenters: Sequence[str], pairs: int,
                  settings: Mapping) -> tuple[tuple[float, float], tuple[float, float]]:
     """uskin.redraw's tilt for a z-only taxel skin: per axis, the least-squares (a, b) with which
     the first moment of the skin's own area changes is a times the translations' plus b times
-    their common shift (uskin.load_moments) over the paired frames of matched_gain.  M2M draws
-    a shear into the z-only skin as dot motion, which the skin cannot show, and barely tilts
-    its load; the tilt moves that cue to where the skin has it."""
+    their common shift (uskin.load_moments) over the paired frames of matched_gain, unless that
+    a adds to the drawn moment and sets the dots the redraw shrinks elsewhere than the skin
+    shrinks them (shrink_guard).
+    M2M draws a shear into the z-only skin as dot motion, which the skin cannot show, and
+    barely tilts its load; the tilt moves that cue to where the skin has it."""
     from stages.markers.uskin import USKIN_PAD_MM, load_moments
     fake_off, fake_area, real_off, real_area = _paired_dot_changes(
         convert, source_markers, target_markers, indenters, pairs, settings)
@@ -300,8 +306,52 @@ def matched_tilt(convert, source_markers, target_markers, indenters: Sequence[st
     for k in (0, 1):
         x = np.stack([fake_moment[:, k], fake_shift[:, k]], 1)
         coef, *_ = np.linalg.lstsq(x, real_moment[:, k], rcond=None)
-        out.append(tuple(round(float(c), 4) for c in coef))
+        a, b = shrink_guard(k, (float(coef[0]), float(coef[1])), fake_area, fake_moment, fake_shift,
+                            real_area, real_moment, settings, pad)
+        out.append((round(a, 4), round(b, 4)))
     return tuple(out)
+
+
+def shrink_guard(axis: int, fit: tuple[float, float], fake_area, fake_moment, fake_shift, real_area,
+                 real_moment, settings: Mapping, pad) -> tuple[float, float]:
+    """matched_tilt's (a, b) along `axis`: the least-squares `fit`, unless its a exceeds 1 and
+    with it the dots the redraw shrinks below their rest size sit elsewhere than on the skin's
+    own frames.  Over the paired frames where both shrink a dot, the correlation of the two
+    centroids of shrunk area (uskin.shrink_centroids) is taken for the fit and for each a of
+    TILT_WEIGHTS, b then the least-squares fit given a.  If the fit's falls short of the best by
+    more than the best's standard error, (1 - r^2) / sqrt(n - 1), the best a and its b replace
+    it.
+
+    The skin shows where the contact is by where its load is.  A fit whose a exceeds 1 adds a
+    plane in proportion to the translations' drawn moment, mostly where the contact is, scaled
+    up where they draw it too near the pad's centre (TacTip's at 0.55 of the skin's spread:
+    a 1.40 in x): that plane is no shear, yet it moves the shrunk dots, the skin's shear cue,
+    with where the contact is.  An a below 1 only takes some of M2M's drawn moment away, and is
+    kept (in y, where the contacts barely move, the translations' shrunk dots follow the
+    skin's better at larger a, but the regressor reads shear worse).  A skin whose dots cannot
+    shrink (min_area = base_area), or fewer than MIN_SHRINK_FRAMES such frames, keeps the fit."""
+    from stages.markers.uskin import shrink_centroids, tilt_changes
+    real_c, real_lost = shrink_centroids(real_area, settings, pad)
+    shift = fake_shift[:, axis]
+    den = float(shift @ shift)
+
+    def score(a: float, b: float) -> tuple[float, int]:
+        want = fake_moment.copy()
+        want[:, axis] = a * fake_moment[:, axis] + b * shift
+        c, lost = shrink_centroids(tilt_changes(fake_area, fake_moment, want, pad), settings, pad)
+        on = (lost > 1e-3) & (real_lost > 1e-3)
+        if on.sum() < MIN_SHRINK_FRAMES or c[on, axis].std() == 0 or real_c[on, axis].std() == 0:
+            return -np.inf, int(on.sum())
+        return float(np.corrcoef(c[on, axis], real_c[on, axis])[0, 1]), int(on.sum())
+
+    if fit[0] <= 1.0 or den <= 1e-12:
+        return fit
+    tried = [(score(a, b), a, b) for a in TILT_WEIGHTS
+             for b in [float(shift @ (real_moment[:, axis] - a * fake_moment[:, axis]) / den)]]
+    (best, n), a, b = max(tried, key=lambda t: t[0][0])
+    if not np.isfinite(best) or score(*fit)[0] >= best - max(1.0 - best ** 2, 1e-9) / np.sqrt(n - 1):
+        return fit
+    return float(a), b
 
 
 def _redraw_gains(mode: str, convert, settings: Mapping, **paired) -> dict:

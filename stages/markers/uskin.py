@@ -237,6 +237,29 @@ def load_moments(offsets, changes, pad_mm=USKIN_PAD_MM) -> tuple[np.ndarray, np.
     return np.asarray(changes) @ _taxel_positions(pad_mm), np.asarray(offsets).mean(1)
 
 
+def shrink_centroids(changes, settings: Mapping, pad_mm=USKIN_PAD_MM) -> tuple[np.ndarray, np.ndarray]:
+    """Where a z-only skin's dots shrink: per frame of area changes (N, 16) as dot_changes reads
+    them, the centroid (N, 2) mm from the pad's centre of the area the dots, drawn as redraw
+    draws them (clipped to min_area..max_area), lose below their rest size, and that area (N,)
+    mm^2 (0: no dot shrinks; its centroid is then 0).  A sheared pad rises ahead of the contact,
+    so there its taxels read less than at rest and its dots shrink: this centroid follows the
+    shear (scripts/shear_cue.py)."""
+    base_area = float(settings.get("base_area", BASE_AREA))
+    areas = np.clip(base_area + np.asarray(changes, float), float(settings.get("min_area", base_area)),
+                    float(settings.get("max_area", 16.0)))
+    lost = np.clip(base_area - areas, 0.0, None)
+    total = lost.sum(1)
+    centroid = (lost @ _taxel_positions(pad_mm)) / np.where(total > 0, total, 1.0)[:, None]
+    return centroid, total
+
+
+def tilt_changes(changes, moment, want, pad_mm=USKIN_PAD_MM) -> np.ndarray:
+    """Area changes (N, 16) plus the plane across the pad, summing to 0, that takes their first
+    moment (N, 2) to `want` (N, 2) (least squares over the taxel positions)."""
+    grid = _taxel_positions(pad_mm)
+    return np.asarray(changes, float) + (np.asarray(want) - np.asarray(moment)) @ np.linalg.inv(grid.T @ grid) @ grid.T
+
+
 def _taxel_positions(pad_mm) -> np.ndarray:
     """(16, 2) mm: the taxel centres from the pad's centre (the lever arms of load_moments)."""
     grid = taxel_centres(tuple(pad_mm))

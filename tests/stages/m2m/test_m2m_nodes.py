@@ -271,6 +271,78 @@ def test_matched_tilt_finds_the_tilt_that_made_a_z_only_skins_load(skins):
     for (a, b), (ga, gb) in zip(tilt, got):
         assert ga == pytest.approx(a, abs=0.1) and gb == pytest.approx(b, rel=0.15)
 
+def _sheared_loads(n=120, compress=1.0, seed=0):
+    """(area changes (N,16), common shift (N,2), shear (N,2)): a z-only skin's load under a
+    contact at a random place (x within +-4 mm, y +-1 mm; `compress` times that where it is
+    drawn) with a random shear, which tilts the load by a plane across the pad that lowers it
+    ahead of the contact (as Cerruti's solution), so that the dots there shrink."""
+    from stages.markers.uskin import _taxel_positions
+    rng = np.random.default_rng(seed)
+    grid = _taxel_positions((24.6, 22.6))
+    place = rng.uniform([-4.0, -1.0], [4.0, 1.0], (n, 2))
+    load = rng.uniform(2.0, 6.0, n)
+    shear = rng.normal(0.0, 1.0, (n, 2))
+    blob = np.exp(-((grid[None] - compress * place[:, None]) ** 2).sum(-1) / (2 * 4.0 ** 2))
+    blob *= (load / blob.sum(1))[:, None] * 16
+    return blob - 0.15 * shear @ grid.T, shear, shear
+
+
+def test_shrink_guard_keeps_a_fit_that_shrinks_the_dots_where_the_skin_does():
+    """Translations that draw the skin's load with its moment along one axis halved by a plane:
+    the least-squares tilt (2, 0) restores the skin's load, shrunk dots and all, and is kept; so
+    is a fit with a <= 1, and any fit on a skin whose dots cannot shrink (min_area = base_area)."""
+    from stages.markers.uskin import load_moments, tilt_changes
+    real, shift, _ = _sheared_loads()
+    offsets = np.repeat(shift[:, None], 16, 1)
+    moment, drawn = load_moments(offsets, real)
+    z = {"base_area": 2.0, "min_area": 0.5, "max_area": 16.0, "z_only": True}
+    for k in (0, 1):
+        halved = moment.copy()
+        halved[:, k] *= 0.5
+        fake = tilt_changes(real, moment, halved, (24.6, 22.6))
+        fake_moment, _ = load_moments(offsets, fake)
+        fit = tuple(float(c) for c in np.linalg.lstsq(np.stack([fake_moment[:, k], drawn[:, k]], 1),
+                                                      moment[:, k], rcond=None)[0])
+        assert fit == pytest.approx((2.0, 0.0), abs=1e-6)
+        assert nodes.shrink_guard(k, fit, fake, fake_moment, drawn, real, moment, z, (24.6, 22.6)) == fit
+        assert nodes.shrink_guard(k, (0.4, -3.0), fake, fake_moment, drawn, real, moment, z,
+                                  (24.6, 22.6)) == (0.4, -3.0)
+    assert nodes.shrink_guard(0, (1.7, -3.0), fake, fake_moment, drawn, real, moment,
+                              {**z, "min_area": 2.0}, (24.6, 22.6)) == (1.7, -3.0)
+
+
+def test_shrink_guard_refuses_a_tilt_that_moves_the_shrunk_dots_with_the_contact():
+    """Translations that draw the contact 0.55 as far from the pad's centre as the skin, and its
+    shear only as the dots' common shift: the least-squares fit scales their load's moment up
+    (a ~1.8), and the plane that adds moves the shrunk dots with where the contact is.
+    shrink_guard replaces it with an a between 0.8 and 1.4, whose shrunk dots follow the skin's
+    (correlation above 0.9 where the fit's is below 0.8), its b the least-squares fit given that a."""
+    from stages.markers.uskin import _taxel_positions, load_moments, shrink_centroids, tilt_changes
+    real, shift, shear = _sheared_loads()
+    fake, _, _ = _sheared_loads(compress=0.55)
+    fake = fake + 0.15 * shear @ _taxel_positions((24.6, 22.6)).T      # no tilt drawn
+    offsets = np.repeat(shift[:, None], 16, 1)
+    fake_moment, drawn = load_moments(offsets, fake)
+    real_moment, _ = load_moments(offsets, real)
+    z = {"base_area": 2.0, "min_area": 0.5, "max_area": 16.0, "z_only": True}
+    pad = (24.6, 22.6)
+    x = np.stack([fake_moment[:, 0], drawn[:, 0]], 1)
+    fit = tuple(float(c) for c in np.linalg.lstsq(x, real_moment[:, 0], rcond=None)[0])
+    assert fit[0] > 1.5
+    a, b = nodes.shrink_guard(0, fit, fake, fake_moment, drawn, real, real_moment, z, pad)
+    assert 0.8 <= a <= 1.4 and a in nodes.TILT_WEIGHTS
+    assert b == pytest.approx(float(drawn[:, 0] @ (real_moment[:, 0] - a * fake_moment[:, 0])
+                                    / (drawn[:, 0] @ drawn[:, 0])))
+    real_c, _ = shrink_centroids(real, z, pad)
+
+    def corr(a_, b_):
+        want = fake_moment.copy()
+        want[:, 0] = a_ * fake_moment[:, 0] + b_ * drawn[:, 0]
+        c, lost = shrink_centroids(tilt_changes(fake, fake_moment, want, pad), z, pad)
+        return np.corrcoef(c[lost > 1e-3, 0], real_c[lost > 1e-3, 0])[0, 1]
+    assert corr(a, b) > 0.9 and corr(*fit) < 0.8
+
+
 @pytest.mark.parametrize("mode,z_only", [("spread", False), ("shift", False), ("shift", True)])
 def test_translate_redraw_match_draws_with_the_matched_gain(skins, trained, monkeypatch, mode, z_only):
     """translate with redraw_match into a listed taxel skin: attrs carry the gains, which are

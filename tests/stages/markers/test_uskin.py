@@ -341,3 +341,25 @@ def test_taxel_sequence_streams_signals_and_labels(monkeypatch):
     assert list(out["indenters"]) == ["sphere", "prism"]
     with pytest.raises(ValueError, match="variant must be one of"):
         drain(taxel_sequence(deform=deform, skin="uskin-x", spec={"variant": "xy"}))
+
+
+def test_shrink_centroids_and_tilt_changes():
+    """shrink_centroids: the area dots lose below their rest size (clipped at min_area) and its
+    centroid, 0 where none shrinks; tilt_changes adds a plane summing to 0 that sets the moment."""
+    from stages.markers.uskin import _taxel_positions, shrink_centroids, tilt_changes
+    grid = _taxel_positions(USKIN_PAD_MM)
+    kw = {"base_area": 2.0, "min_area": 0.5, "max_area": 16.0}
+    changes = np.zeros((3, 16))
+    changes[0, 5] = -1.0                            # one dot shrinks by 1 mm^2
+    changes[1, [0, 15]] = [-3.0, -0.5]              # clipped at 0.5 mm^2: loses 1.5, and 0.5
+    changes[2, 7] = 4.0                             # grows only
+    centroid, lost = shrink_centroids(changes, kw)
+    assert lost == pytest.approx([1.0, 2.0, 0.0])
+    assert centroid[0] == pytest.approx(grid[5])
+    assert centroid[1] == pytest.approx((1.5 * grid[0] + 0.5 * grid[15]) / 2.0)
+    assert centroid[2] == pytest.approx([0.0, 0.0])
+    assert shrink_centroids(changes, {**kw, "min_area": 2.0})[1] == pytest.approx([0.0, 0.0, 0.0])
+    moment = changes @ grid
+    want = moment + np.array([[10.0, -5.0], [0.0, 0.0], [-2.0, 3.0]])
+    tilted = tilt_changes(changes, moment, want)
+    assert tilted @ grid == pytest.approx(want) and tilted.sum(1) == pytest.approx(changes.sum(1))
