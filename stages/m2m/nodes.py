@@ -331,9 +331,11 @@ def shrink_guard(axis: int, fit: tuple[float, float], fake_area, fake_moment, fa
     skin's better at larger a, but the regressor reads shear worse).  A skin whose dots cannot
     shrink (min_area = base_area), or fewer than MIN_SHRINK_FRAMES such frames, keeps the fit."""
     from stages.markers.uskin import shrink_centroids, tilt_changes
-    real_c, real_lost = shrink_centroids(real_area, settings, pad)
     shift = fake_shift[:, axis]
     den = float(shift @ shift)
+    if fit[0] <= 1.0 or den <= 1e-12:
+        return fit
+    real_c, real_lost = shrink_centroids(real_area, settings, pad)
 
     def score(a: float, b: float) -> tuple[float, int]:
         want = fake_moment.copy()
@@ -344,11 +346,8 @@ def shrink_guard(axis: int, fit: tuple[float, float], fake_area, fake_moment, fa
             return -np.inf, int(on.sum())
         return float(np.corrcoef(c[on, axis], real_c[on, axis])[0, 1]), int(on.sum())
 
-    if fit[0] <= 1.0 or den <= 1e-12:
-        return fit
-    tried = [(score(a, b), a, b) for a in TILT_WEIGHTS
-             for b in [float(shift @ (real_moment[:, axis] - a * fake_moment[:, axis]) / den)]]
-    (best, n), a, b = max(tried, key=lambda t: t[0][0])
+    given = [(a, float(shift @ (real_moment[:, axis] - a * fake_moment[:, axis]) / den)) for a in TILT_WEIGHTS]
+    (best, n), a, b = max(((score(a, b), a, b) for a, b in given), key=lambda t: t[0][0])
     if not np.isfinite(best) or score(*fit)[0] >= best - max(1.0 - best ** 2, 1e-9) / np.sqrt(n - 1):
         return fit
     return float(a), b

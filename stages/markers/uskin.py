@@ -304,9 +304,7 @@ def redraw(images, settings: Mapping, supersample: int = 4, gain=(1.0, 1.0, 1.0)
         if t.shape != (2, 2) or not np.isfinite(t).all():
             raise ValueError(f"redraw: tilt must be 2x2 numbers ((a_x, b_x), (a_y, b_y)), got {tilt!r}")
         moment, shift = load_moments(offsets, changes, pad)
-        want = t[:, 0] * moment + t[:, 1] * shift
-        grid = _taxel_positions(pad)
-        changes = changes + (want - moment) @ np.linalg.inv(grid.T @ grid) @ grid.T
+        changes = tilt_changes(changes, moment, t[:, 0] * moment + t[:, 1] * shift, pad)
     if shift_gain is None:
         offsets = offsets * g[:2]
     else:
