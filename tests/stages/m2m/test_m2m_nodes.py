@@ -271,9 +271,10 @@ def test_matched_tilt_finds_the_tilt_that_made_a_z_only_skins_load(skins):
     for (a, b), (ga, gb) in zip(tilt, got):
         assert ga == pytest.approx(a, abs=0.1) and gb == pytest.approx(b, rel=0.15)
 
+
 def _sheared_loads(n=120, compress=1.0, seed=0):
-    """(area changes (N,16), common shift (N,2), shear (N,2)): a z-only skin's load under a
-    contact at a random place (x within +-4 mm, y +-1 mm; `compress` times that where it is
+    """(area changes (N,16), shear (N,2), which is also the dots' drawn common shift): a z-only
+    skin's load under a contact at a random place (x within +-4 mm, y +-1 mm; `compress` times that where it is
     drawn) with a random shear, which tilts the load by a plane across the pad that lowers it
     ahead of the contact (as Cerruti's solution), so that the dots there shrink."""
     from stages.markers.uskin import _taxel_positions
@@ -284,7 +285,7 @@ def _sheared_loads(n=120, compress=1.0, seed=0):
     shear = rng.normal(0.0, 1.0, (n, 2))
     blob = np.exp(-((grid[None] - compress * place[:, None]) ** 2).sum(-1) / (2 * 4.0 ** 2))
     blob *= (load / blob.sum(1))[:, None] * 16
-    return blob - 0.15 * shear @ grid.T, shear, shear
+    return blob - 0.15 * shear @ grid.T, shear
 
 
 def test_shrink_guard_keeps_a_fit_that_shrinks_the_dots_where_the_skin_does():
@@ -292,7 +293,7 @@ def test_shrink_guard_keeps_a_fit_that_shrinks_the_dots_where_the_skin_does():
     the least-squares tilt (2, 0) restores the skin's load, shrunk dots and all, and is kept; so
     is a fit with a <= 1, and any fit on a skin whose dots cannot shrink (min_area = base_area)."""
     from stages.markers.uskin import load_moments, tilt_changes
-    real, shift, _ = _sheared_loads()
+    real, shift = _sheared_loads()
     offsets = np.repeat(shift[:, None], 16, 1)
     moment, drawn = load_moments(offsets, real)
     z = {"base_area": 2.0, "min_area": 0.5, "max_area": 16.0, "z_only": True}
@@ -318,9 +319,9 @@ def test_shrink_guard_refuses_a_tilt_that_moves_the_shrunk_dots_with_the_contact
     shrink_guard replaces it with an a between 0.8 and 1.4, whose shrunk dots follow the skin's
     (correlation above 0.9 where the fit's is below 0.8), its b the least-squares fit given that a."""
     from stages.markers.uskin import _taxel_positions, load_moments, shrink_centroids, tilt_changes
-    real, shift, shear = _sheared_loads()
-    fake, _, _ = _sheared_loads(compress=0.55)
-    fake = fake + 0.15 * shear @ _taxel_positions((24.6, 22.6)).T      # no tilt drawn
+    real, shift = _sheared_loads()
+    fake, _ = _sheared_loads(compress=0.55)
+    fake = fake + 0.15 * shift @ _taxel_positions((24.6, 22.6)).T      # no tilt drawn
     offsets = np.repeat(shift[:, None], 16, 1)
     fake_moment, drawn = load_moments(offsets, fake)
     real_moment, _ = load_moments(offsets, real)
