@@ -274,9 +274,9 @@ def test_matched_tilt_finds_the_tilt_that_made_a_z_only_skins_load(skins):
 
 def _sheared_loads(n=120, compress=1.0, seed=0):
     """(area changes (N,16), shear (N,2), which is also the dots' drawn common shift): a z-only
-    skin's load under a contact at a random place (x within +-4 mm, y +-1 mm; `compress` times that where it is
-    drawn) with a random shear, which tilts the load by a plane across the pad that lowers it
-    ahead of the contact (as Cerruti's solution), so that the dots there shrink."""
+    skin's load under a contact at a random place (x within +-4 mm, y +-1 mm; `compress` times
+    that where it is drawn) with a random shear, which tilts the load by a plane across the pad
+    that lowers it ahead of the contact (as Cerruti's solution), so that the dots there shrink."""
     from stages.markers.uskin import _taxel_positions
     rng = np.random.default_rng(seed)
     grid = _taxel_positions((24.6, 22.6))
