@@ -123,8 +123,9 @@ def _raw_translations(get, source, target, cache):
 
 
 def _places(moment, load, contact_id):
-    """Each frame's place part of the load moment (N, 2): its contact's load-weighted mean
-    centroid (sum m w / sum w^2 over the contact's frames) times the frame's load."""
+    """Per frame (N, 2 each): its contact's load-weighted mean centroid of the load moment (sum
+    m w / sum w^2 over the contact's frames, w the load where positive), and the place part of
+    its moment, that centroid times the frame's load."""
     w = np.clip(load, 0, None)
     centroid = np.zeros_like(moment)
     for c in np.unique(contact_id):
