@@ -7,10 +7,13 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 
-def artifact_path(store: str, instance: str, tool: str, params: tuple[str, ...] = ()) -> str:
-    """The path `pipeline get` prints (with `params` as its -p KEY=VALUE overrides); exits with
-    one line naming `tool` and `instance` when the store does not hold it up to date."""
+def artifact_path(store: str, instance: str, tool: str, params: tuple[str, ...] = (),
+                  profile: str | None = None) -> str:
+    """The path `pipeline get` prints (with `params` as its -p KEY=VALUE overrides, under
+    `profile` when given); exits with one line naming `tool` and `instance` when the store does
+    not hold it up to date."""
     overrides = [arg for kv in params for arg in ("-p", kv)]
+    overrides += ["--profile", profile] if profile else []
     out = subprocess.run([sys.executable, "-m", "pipeline", "get", instance, "--store", str(store),
                           *overrides], cwd=REPO, capture_output=True, text=True)
     if out.returncode:

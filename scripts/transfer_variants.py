@@ -73,16 +73,10 @@ class Store:
         self.profile = profile
         self.params = P.load(project.params_file, profile, [], project.profiles_dir)
 
-    def __call__(self, instance, required=True):
-        import subprocess
+    def __call__(self, instance):
         from pipeline.artifact import Artifact
-        out = subprocess.run([sys.executable, "-m", "pipeline", "get", instance, "--store", self.store,
-                              "--profile", self.profile], cwd=REPO, capture_output=True, text=True)
-        if out.returncode:
-            if not required:
-                return None
-            sys.exit(f"{TOOL}: {instance}: {out.stderr.strip() or out.stdout.strip()}")
-        return Artifact(out.stdout.strip())
+        from store_lookup import artifact_path
+        return Artifact(artifact_path(self.store, instance, TOOL, profile=self.profile))
 
 
 def _score(y, p) -> str:
@@ -234,10 +228,8 @@ def _stored_models(get, source, target, seeds):
         if seed == own:
             models[seed] = load_model(tr, "genforce_comp")
             continue
-        art = get(f"hetero_seed[source={source},target={target},seed={seed}]", required=False)
-        if art is None:
-            sys.exit(f"{TOOL}: no stored model of seed {seed} for {source}:{target} in this profile")
-        models[seed] = load_model(art, "genforce_comp")
+        models[seed] = load_model(get(f"hetero_seed[source={source},target={target},seed={seed}]"),
+                                  "genforce_comp")
     return tr, attrs_of(tr), models
 
 
@@ -291,7 +283,7 @@ def reread(get, args, source, target, test):
         lin = lin.get("genforce_comp", lin.get("genforce"))
         if not lin:
             sys.exit(f"{TOOL}: transfer[{source},{target}] has no linear Fz read")
-        fz = _compensated_fz(get, tr, tra, tgt, attrs)
+        fz = _compensated_fz(tra, attrs)
         coef, intercept = shift_free_coefficients(next(iter(models.values())), tra, tgt,
                                                   contact_runs(tra, attrs["train_indenters"]), fz, rows)
         print(f"shift-free read: coefficients {[round(float(c), 1) for c in coef]}, intercept {intercept:.2f}")
@@ -316,20 +308,17 @@ def reread(get, args, source, target, test):
     return stored, out
 
 
-def _compensated_fz(get, tr, tra, tgt, attrs):
-    """The Fz labels the transfer trained genforce_comp on (compensated as fit_transfer does)."""
-    from stages.force.compensation import compensate, curves_from_calibration, loading_mask
-    from stages.force.nodes import _depth_ratio
-    params = tr.provenance["params"]
-    src_c, tgt_c = (curves_from_calibration(get(f"calibrate[sensor={params[k]['sensor']}]"))
-                    for k in ("source_spec", "target_spec"))
-    depth = np.asarray(tra["normalised_depth"], float)
-    k = _depth_ratio(params["compensation_depth"], depth, tgt, TOOL)
+def _compensated_fz(tra, attrs):
+    """The Fz labels the transfer trained genforce_comp on: compensated with the curves, mode and
+    depth ratio its attrs record, as fit_transfer_seed compensates them."""
+    from stages.force.compensation import Curves, compensate, loading_mask
     force = np.asarray(tra["force"], np.float32)
-    if src_c == tgt_c and k == 1.0:
+    if attrs["compensation_identity"]:
         return force[:, 2]
-    return compensate(force, depth, loading_mask(np.asarray(tra["phase"])), src_c, tgt_c,
-                      mode=params["compensation"], depth_ratio=k)[:, 2]
+    curves = {k: Curves.from_dict(v) for k, v in attrs["curves"].items()}
+    return compensate(force, np.asarray(tra["normalised_depth"], float), loading_mask(np.asarray(tra["phase"])),
+                      curves["source"], curves["target"], mode=attrs["compensation"],
+                      depth_ratio=float(attrs["depth_ratio"]))[:, 2]
 
 
 def main():
