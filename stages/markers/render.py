@@ -75,6 +75,17 @@ def camera_distance(size, pad_size_mm) -> float:
     return float(min(pad_size_mm[0] / 2 / tan_x, pad_size_mm[1] / 2 / (tan_x * h / w)))
 
 
+def _view(view_mm) -> tuple[float, float]:
+    """A skin's `view_mm` as (x, y) mm, or a one-line error naming it."""
+    try:
+        view = tuple(float(v) for v in view_mm)
+    except (TypeError, ValueError):
+        view = ()
+    if len(view) != 2 or not all(np.isfinite(v) and v > 0 for v in view):
+        raise ValueError(f"render view_mm {view_mm!r}: expected two positive lengths [x, y] in mm")
+    return view
+
+
 _NEIGHBOURS = [(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1) if di or dj]
 
 
@@ -108,12 +119,14 @@ class Renderer:
 
     light: LED colours, one RGB (relative strengths) per LED, default the look's (see
     looks.LedRig: the exposure is automatic); noise: Gaussian camera noise sigma in grey
-    levels, seeded by (seed, frame index); upsample: vertices per solver cell and axis.
+    levels, seeded by (seed, frame index); upsample: vertices per solver cell and axis;
+    view_mm: the (x, y) mm of the pad around its centre that the frame shows (the camera moves
+    closer, as a crop of the native frame would; default: the whole pad fills the frame).
     """
 
     def __init__(self, grid_x, grid_y, surface_z, on_pad, markers: MarkerSet, *, look: str = "none",
                  size=(128, 128), spp: int = 1, backend: str = "auto", light=None,
-                 noise: float = 0.0, seed: int = 0, upsample: float = 1.0):
+                 noise: float = 0.0, seed: int = 0, upsample: float = 1.0, view_mm=None):
         if look not in LOOKS:
             raise ValueError(f"render look {look!r}: expected one of {', '.join(LOOKS)}")
         self.ss = int(round(np.sqrt(spp)))
@@ -127,7 +140,8 @@ class Renderer:
         self.backend = resolve_backend(backend)
         self.mesh = PadMesh(grid_x, grid_y, surface_z, on_pad, markers.pad_size_mm, upsample)
         self.fov_x = camera_fov_x(self.size)
-        self.distance = camera_distance(self.size, self.mesh.pad)
+        self.view = None if view_mm is None else _view(view_mm)
+        self.distance = camera_distance(self.size, self.mesh.pad if self.view is None else self.view)
         self.eye = np.array([0.0, 0.0, self.mesh.fill_z - self.distance], np.float32)
         self._texture(markers)
         if look != "none":
@@ -283,7 +297,8 @@ def render_sequence(*, deform: Mapping, patterns: Mapping, skin: str, spec: Mapp
     spec (the skin's params): `sensor` (the deform instance), `pattern` (a name in the
     patterns artifact), `look` (none, gelsight, tactip), optional `light` (RGB per LED),
     `noise` (sigma, grey levels; default 0), `seed` (noise seed; default from the skin name),
-    `upsample` (vertices per solver cell and axis; default 1).
+    `upsample` (vertices per solver cell and axis; default 1), `view_mm` ([x, y] mm of the pad
+    around its centre the frame shows; default the whole pad).
     Yields `truth` (n,H,W) uint8 0/255, `raw` (n,H,W,3) uint8 for camera looks, and the label
     keys copied from deform.  Returns `truth_reference` (H,W) (zero displacement), for camera
     looks `raw_reference` (H,W,3), figures/frames (a few deep frames: raw above truth), and
@@ -300,7 +315,7 @@ def render_sequence(*, deform: Mapping, patterns: Mapping, skin: str, spec: Mapp
     renderer = Renderer(deform["grid_x"], deform["grid_y"], deform["surface_z"], deform["on_pad"],
                         markers, look=look, size=size, spp=spp, backend=backend,
                         light=spec.get("light"), noise=float(spec.get("noise", 0.0)), seed=seed,
-                        upsample=float(spec.get("upsample", 1.0)))
+                        upsample=float(spec.get("upsample", 1.0)), view_mm=spec.get("view_mm"))
     displacement = deform["displacement"]
     n = len(displacement)
     labels = [k for k in LABEL_KEYS if k in deform]
@@ -330,7 +345,8 @@ def render_sequence(*, deform: Mapping, patterns: Mapping, skin: str, spec: Mapp
     out["figures"] = {"frames": png(contact_sheet([img for row in rows for img in row], cols=len(rows[0])))}
     out["attrs"] = {"backend": renderer.backend, "spp": int(spp), "size": list(renderer.size),
                     "look": look, "pattern": str(spec["pattern"]), "sensor": str(spec.get("sensor", "")),
-                    "fov_x_deg": renderer.fov_x,
+                    "fov_x_deg": renderer.fov_x, **({} if renderer.view is None else
+                                                    {"view_mm": list(renderer.view)}),
                     "camera_distance_mm": renderer.distance, "texture_size": list(renderer.texture.shape),
                     "noise": renderer.noise, "seed": seed, "threads": THREADS}
     out["timing"] = {"seconds_per_frame": seconds / n if n else 0.0}

@@ -144,6 +144,39 @@ def test_uniform_shift_moves_markers_by_its_size_in_pixels(none_renderer):
     assert np.abs(inside[:, 1]).mean() < 0.3
 
 
+def test_view_mm_frames_the_pad_centre(none_renderer):
+    """view_mm [10, 10] of the 20 mm flat pad: the frame shows the central half, so markers
+    lie twice as far apart and twice as far from the centre, a shift moves them twice as many
+    pixels, and the attrs record the view; a bad view_mm is named."""
+    gx, gy, z, on = flat_pad()
+    half = Renderer(gx, gy, z, on, pattern("Array3"), look="none", size=(128, 128), spp=1,
+                    view_mm=[10.0, 10.0])
+    assert half.distance == pytest.approx(none_renderer.distance / 2)
+    whole, near = (centroids(r.render(np.zeros((33, 33, 3)))["truth"]) - 63.5
+                   for r in (none_renderer, half))
+    spacing = [np.median(np.sort(np.linalg.norm(c[:, None] - c[None], axis=-1), 1)[:, 1])
+               for c in (whole, near)]
+    assert spacing[1] / spacing[0] == pytest.approx(2.0, rel=0.03)
+    inner = whole[np.abs(whole).max(1) < 28]                   # the markers still in the view
+    matched = near[np.linalg.norm(2 * inner[:, None] - near[None], axis=-1).argmin(1)]
+    assert len(inner) >= 9 and np.abs(matched - 2 * inner).max() < 1.0
+    moved = np.zeros((33, 33, 3), np.float32)
+    moved[..., 0] = 0.5                                        # 0.5 mm = 6.4 px at 128 px / 10 mm
+    _, motion = matched_motion(half.render(np.zeros((33, 33, 3)))["truth"],
+                               half.render(moved)["truth"])
+    inside = motion[np.abs(motion[:, 0] - 6.4) < 2.0]
+    assert len(inside) >= 10 and inside[:, 0].mean() == pytest.approx(6.4, abs=0.4)
+    deform = _deform(2, grid=33)
+    _, final = drain(render_sequence(deform=deform, patterns=_patterns("Array3", pattern("Array3")),
+                                     skin="Array3", spec={"sensor": "sim", "pattern": "Array3",
+                                                          "look": "none", "view_mm": [10, 10]},
+                                     size=[32, 32], spp=1, backend="auto"))
+    assert final["attrs"]["view_mm"] == [10.0, 10.0]
+    for bad in ([10.0], [10.0, -1.0], "wide", [10.0, float("nan")]):
+        with pytest.raises(ValueError, match=r"render view_mm .*two positive lengths"):
+            Renderer(gx, gy, z, on, pattern("Array3"), view_mm=bad, backend="scalar")
+
+
 def test_indenter_shift_moves_markers_to_plus_column(none_renderer):
     gx, gy, _, _ = flat_pad()
     pressed = press(gx, gy, depth=1.0)
