@@ -12,7 +12,9 @@ markers to +column.  Pressing (uz < 0) brings the surface towards the camera.  I
 with a 35 mm lens on a 36 x 27 mm, 640 x 480 px sensor; an output of another aspect ratio is
 the largest centred crop of that frame with the output's aspect, resampled to `size` (H, W)
 (a square output sees a 27 x 27 mm crop: 42.2 deg).  Its distance is the largest at which the
-pad (at its rim, for a dome) still fills the frame.
+pad (at its rim, for a dome) still fills the frame, or, with the skin's `view_mm` [x, y], at
+which that central region of the pad does (TacTip's camera frames the central 25 mm of its
+40 mm dome, so that a mm of contact place is about as many pixels as on the flat pads).
 
 Rendering (deferred shading).  Mitsuba traces one ray per sample through the mesh (the `aov`
 integrator: texture coordinates and hit distance; spp samples per pixel on a regular
