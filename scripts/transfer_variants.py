@@ -272,7 +272,8 @@ def shift_free_coefficients(model, translated, target_markers, runs, fz, paired_
 
 def reread(get, args, source, target, test):
     from stages.force.model import predict_contacts
-    from stages.force.nodes import _paired_rows, _target_predictions, contact_runs, fz_readout, scale_fz
+    from stages.force.nodes import (_paired_rows, _target_predictions, contact_runs, fz_readout,
+                                    recorded_compensation, scale_fz)
     tr, attrs, models = _stored_models(get, source, target, args.seeds)
     tra, tgt = get(f"translate[source={source},target={target}]"), get(f"markers[skin={target}]")
     _, rows = _paired_rows(tra, tgt, attrs["train_indenters"], int(tr.provenance["params"]["align_pairs"]))
@@ -283,7 +284,7 @@ def reread(get, args, source, target, test):
         lin = lin.get("genforce_comp", lin.get("genforce"))
         if not lin:
             sys.exit(f"{TOOL}: transfer[{source},{target}] has no linear Fz read")
-        fz = _compensated_fz(tra, attrs)
+        fz = recorded_compensation(tra, attrs)[:, 2]
         coef, intercept = shift_free_coefficients(next(iter(models.values())), tra, tgt,
                                                   contact_runs(tra, attrs["train_indenters"]), fz, rows)
         print(f"shift-free read: coefficients {[round(float(c), 1) for c in coef]}, intercept {intercept:.2f}")
@@ -306,19 +307,6 @@ def reread(get, args, source, target, test):
             p[:, k] = stored[seed][:, [k, 2]] @ c
         out[seed] = p
     return stored, out
-
-
-def _compensated_fz(tra, attrs):
-    """The Fz labels the transfer trained genforce_comp on: compensated with the curves, mode and
-    depth ratio its attrs record, as fit_transfer_seed compensates them."""
-    from stages.force.compensation import Curves, compensate, loading_mask
-    force = np.asarray(tra["force"], np.float32)
-    if attrs["compensation_identity"]:
-        return force[:, 2]
-    curves = {k: Curves.from_dict(v) for k, v in attrs["curves"].items()}
-    return compensate(force, np.asarray(tra["normalised_depth"], float), loading_mask(np.asarray(tra["phase"])),
-                      curves["source"], curves["target"], mode=attrs["compensation"],
-                      depth_ratio=float(attrs["depth_ratio"]))[:, 2]
 
 
 def main():

@@ -413,7 +413,6 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
     where transfer's has one: this model's own gains against transfer's stored readout_shear
     on the same frames; fz_readout likewise, this model's own gain}.  `align`, `align_pairs`,
     `splice`, `target_markers` and `checkpoint`: as fit_transfer's."""
-    from stages.force.compensation import Curves, compensate, loading_mask
     from stages.force.model import to_arrays
     from stages.force.train import fit_two_stage, make_sequences
     info = attrs_of(transfer)
@@ -424,13 +423,7 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
     if not runs:
         raise ValueError(f"{name}: no translated contacts to train on")
     reference = np.asarray(translated["reference"])
-    force = np.asarray(translated["force"], np.float32)
-    if not info["compensation_identity"]:
-        curves = {k: Curves.from_dict(v) for k, v in info["curves"].items()}
-        force = compensate(force, np.asarray(translated["normalised_depth"], float),
-                           loading_mask(np.asarray(translated["phase"])), curves["source"],
-                           curves["target"], mode=info["compensation"],
-                           depth_ratio=float(info["depth_ratio"]))
+    force = recorded_compensation(translated, info)
     images, seq_runs, spliced = _training_images(translated, runs, target_markers, train_indenters,
                                                  align_pairs, splice, name)
     seqs = make_sequences(images, [force[a:b] for a, b in seq_runs], reference, model_cfg)
@@ -770,19 +763,29 @@ def compensated_test_labels(source_art, transfer_art, test_indenters, target_fra
     """(N,3) the source's test-contact labels compensated with transfer_art's recorded curves,
     mode and depth ratio, in the order of the target's test frames; None when the frames are
     not location-paired (no `frame` labels, or they differ) or the transfer records no curves."""
-    from stages.force.compensation import Curves, compensate, loading_mask
     attrs = attrs_of(transfer_art)
     if target_frames is None or "frame" not in source_art or "curves" not in attrs:
         return None
     rows = np.concatenate([np.arange(a, b) for a, b in contact_runs(source_art, test_indenters)])
     if not np.array_equal(np.asarray(source_art["frame"])[rows], target_frames):
         return None
+    return recorded_compensation(source_art, attrs, rows)
+
+
+def recorded_compensation(labelled: Mapping, attrs: Mapping, rows=None) -> np.ndarray:
+    """(N,3) `labelled`'s force labels (its `rows`; None: all of them) compensated as a transfer
+    compensated its training labels: with the curves, mode and depth ratio its `attrs` record
+    (compensation.compensate, which returns them unchanged, bit for bit, where those make the
+    identity).  What fit_transfer_seed trains on and compensated_test_labels scores."""
+    from stages.force.compensation import Curves, compensate, loading_mask
+
+    def take(key, dtype=None):
+        a = np.asarray(labelled[key], dtype)
+        return a if rows is None else a[rows]
     curves = attrs["curves"]
-    return compensate(np.asarray(source_art["force"], np.float32)[rows],
-                      np.asarray(source_art["normalised_depth"], float)[rows],
-                      loading_mask(np.asarray(source_art["phase"])[rows]),
-                      Curves.from_dict(curves["source"]), Curves.from_dict(curves["target"]),
-                      mode=attrs.get("compensation", "normal"),
+    return compensate(take("force", np.float32), take("normalised_depth", float),
+                      loading_mask(take("phase")), Curves.from_dict(curves["source"]),
+                      Curves.from_dict(curves["target"]), mode=attrs.get("compensation", "normal"),
                       depth_ratio=float(attrs.get("depth_ratio", 1.0)))
 
 

@@ -14,7 +14,8 @@ from stages.force.metrics import METRICS, force_metrics
 from stages.force.model import (ForceRegressor, MeanPredictor, StreamingPredictor, from_arrays, load_model,
                                 load_predictor, model_config, predict_contacts, predict_sequence,
                                 mirror_group, resolve_range, to_arrays)
-from stages.force.nodes import METHODS, contact_runs, fit_own, fit_transfer, fit_transfer_seed, force_study
+from stages.force.nodes import (METHODS, contact_runs, fit_own, fit_transfer, fit_transfer_seed, force_study,
+                                recorded_compensation)
 from stages.force.train import fit, make_sequences, mirrored
 
 from force_synthetic import contact_artifact
@@ -479,6 +480,24 @@ def test_transfer_seed_reproduces_transfer_and_mean_predictor(nodes_out, skins, 
     with pytest.raises(ValueError, match=r"transfer\[B->A\] seed 1: no translated contacts"):
         fit_transfer_seed(transfer=transfer, translated=skins["A"], seed=1, finetune_steps=0,
                           **{**kw, "train_indenters": []})
+
+
+def test_recorded_compensation_matches_the_transfers_labels(nodes_out, skins):
+    """recorded_compensation reads a stored transfer's attrs: its Fz gain over the training
+    rows is the label scale fit_transfer recorded; rows pick the same frames; the identity
+    pair's labels come back bit for bit."""
+    _, same, stiffer = nodes_out
+    attrs = json.loads(json.dumps(stiffer["attrs"]))
+    force = np.asarray(skins["A"]["force"], np.float32)
+    comp = recorded_compensation(skins["A"], attrs)
+    rows = np.concatenate([np.arange(a, b) for a, b in contact_runs(skins["A"], attrs["train_indenters"])])
+    loaded = np.abs(force[rows, 2]) > 1e-3
+    gain = comp[rows, 2][loaded] / force[rows, 2][loaded]
+    assert gain.min() == pytest.approx(attrs["label_scale"]["min"], rel=1e-4)
+    assert gain.max() == pytest.approx(attrs["label_scale"]["max"], rel=1e-4)
+    np.testing.assert_array_equal(recorded_compensation(skins["A"], attrs, rows[::3]), comp[rows[::3]])
+    np.testing.assert_array_equal(recorded_compensation(skins["B"], same["attrs"]),
+                                  np.asarray(skins["B"]["force"], np.float32))
 
 
 def test_fit_transfer_axes_mode_and_auto_ranges(skins, tiny_config):
