@@ -186,14 +186,28 @@ GRAPH.node("homo", "stages.studies:transfer_study", inputs=_STUDY,
 GRAPH.node("material", "stages.studies:transfer_study", inputs=_STUDY,
            params={**_STUDY_PARAMS, "study": "material.study", "groups": "material.groups"},
            description="study material (paper Fig. 5): seven elastomers, with and without compensation")
+# a hetero ensemble member's own M2M: the fine-tune again from the member's seed, and the pair
+# translated by it, so that the members differ by M2M's chance as well as the regressor's
+_FINETUNE = {k: v for k, v in GRAPH.nodes["m2m"].params.items() if k != "seed"}
+GRAPH.node("m2m_seed", "stages.m2m.nodes:finetune",
+           inputs={"base": "m2m_sim", "markers": "markers[skin=@m2m.finetune.skins]"},
+           params=_FINETUNE, grid={"seed": "hetero.seeds"},
+           description="M2M fine-tuned again from a hetero ensemble member's seed")
+GRAPH.node("translate_seed", "stages.m2m.nodes:translate_seed_sequence",
+           inputs={"model": "m2m_seed[seed={seed}]", "source_markers": "markers[skin={source}]",
+                   "target_markers": "markers[skin={target}]"},
+           params=dict(GRAPH.nodes["translate"].params),
+           grid={"source,target": "hetero.groups.pairs", "seed": "hetero.seeds"},
+           description="a hetero pair translated by a member's own M2M (m2m_seed)")
 GRAPH.node("hetero_seed", "stages.force.nodes:fit_transfer_seed",
            inputs={"transfer": "transfer[source={source},target={target}]",
-                   "translated": "translate[source={source},target={target}]",
+                   "translated": "translate_seed[source={source},target={target},seed={seed}]",
                    "target_markers": "markers[skin={target}]"},
            params={k: v for k, v in _FIT.items() if k != "seed"} | _ALIGN | {
                "finetune_steps": "force.finetune_steps", "train_indenters": "splits.train_indenters"},
            grid={"source,target": "hetero.groups.pairs", "seed": "hetero.seeds"},
-           description="a hetero pair's genforce_comp trained again from other seeds (its spread)")
+           description="a hetero pair's genforce_comp trained again from another seed, on its own "
+                       "M2M's translation (its spread)")
 GRAPH.node("hetero", "stages.studies:transfer_study", inputs={**_STUDY, "seeds": "hetero_seed[*]"},
            params={**_STUDY_PARAMS, "study": "hetero.study", "groups": "hetero.groups"},
            description="study hetero (paper Fig. 6): GelSight, TacTip, uSkin 3-axis and z-only")

@@ -402,10 +402,13 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
                       align: str = "none", align_pairs: int = 0, splice: str = "none",
                       checkpoint: str | None = None) -> dict:
     """Nodes `transfer_seed[seed]` and `hetero_seed[source,target,seed]`: `transfer`'s
-    genforce_comp model trained again from another seed: the same translated contacts of
-    `train_indenters`, the same labels (compensated with the curves, mode and depth ratio
-    stored in `transfer`'s attrs) and the same two-stage schedule.  Models of several seeds
-    differ only by chance: their mean is a steadier force reading than any one of them (the
+    genforce_comp model trained again from another seed: on `translated`'s contacts of
+    `train_indenters` (transfer_seed: the transfer's own translation; hetero_seed: the pair
+    translated by M2M fine-tuned from the same seed, m2m_seed), with the same labels
+    (compensated with the curves, mode and depth ratio stored in `transfer`'s attrs,
+    recorded_compensation) and the same two-stage schedule; a linear Fz read where the
+    transfer has one, with its weight, fitted on `translated` (attrs linear_fz).  Models of
+    several seeds differ only by chance: their mean is a steadier force reading than any one of them (the
     control study's ensemble; model_pair: transfer's (source, target), which the graph's
     templates read), and their spread is the chance in a study's figure (hetero; source,
     target: the fan-out's values, which transfer's attrs hold too).  Returns genforce_comp
@@ -439,9 +442,9 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
                                    align_pairs, align, name)
     linear = info.get("linear_fz") or {}
     linear = linear.get("genforce_comp", linear.get("genforce"))
-    if linear:                           # the same labels give the same linear read: the transfer's
-        models["genforce_comp"].set_linear_fz(linear["coef"], float(linear["intercept"]),
-                                              float(linear["weight"]))
+    if linear:                           # the transfer's read, fitted again on this node's translation
+        linear_read = fit_linear_fz_read(models["genforce_comp"], translated, runs, force, target_markers,
+                                            train_indenters, align_pairs, float(linear["weight"]))
     readout = {}
     if "readout_shear" in transfer:
         frames, rows = _paired_rows(translated, target_markers, train_indenters, align_pairs)
@@ -459,7 +462,8 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
     return {"genforce_comp": to_arrays(models["genforce_comp"]),
             "attrs": {"config": model.config, "train": train, "source": info["source"],
                       "target": info["target"], "seed": int(seed), "history": kept, "align": aligned,
-                      "spliced": spliced, **readout},
+                      "spliced": spliced, **readout,
+                      **({"linear_fz": linear_read} if linear else {})},
             "timing": timing}
 
 

@@ -405,6 +405,20 @@ def translate_sequence(*, model, source_markers, target_markers, eval_indenters:
     return result
 
 
+def translate_seed_sequence(*, model, source_markers, target_markers, eval_indenters: list[str],
+                            n_eval: int, seed: int, sampler_steps: int = 1,
+                            redraw_taxels: Sequence[str] = (), redraw_match: str = "none",
+                            source: str = "", target: str = ""):
+    """Node translate_seed[source,target,seed]: translate_sequence with `model`, the M2M
+    fine-tuned again from `seed` (m2m_seed), for a hetero ensemble member; attrs m2m_seed."""
+    result = yield from translate_sequence(
+        model=model, source_markers=source_markers, target_markers=target_markers,
+        eval_indenters=eval_indenters, n_eval=n_eval, sampler_steps=sampler_steps,
+        redraw_taxels=redraw_taxels, redraw_match=redraw_match, source=source, target=target)
+    result["attrs"]["m2m_seed"] = int(seed)
+    return result
+
+
 def flow_warp_sequence(*, source_markers, target_markers, eval_indenters: list[str], n_eval: int,
                        redraw_taxels: Sequence[str] = (), source: str = "", target: str = ""):
     """Node flow_warp[source,target]: the training-free baseline (stages.m2m.flow) with the
