@@ -61,6 +61,29 @@ def test_allpairs_adds_pairs_and_changes_nothing_else():
     assert len([n for n in every if n.startswith("translate_sim[")]) == 132
 
 
+def test_hetero_members_train_on_their_own_m2m():
+    """Each hetero ensemble member (hetero_seed, seed s) trains on its pair translated by M2M
+    fine-tuned again from seed s (translate_seed, m2m_seed), with m2m's params but the seed;
+    the pair's transfer (seed 0) keeps translate, from m2m."""
+    project = find_project(ROOT)
+    inst = project.load_graph().expand(P.load(project.params_file, None, [], project.profiles_dir))
+    seeds = P.load(project.params_file, None, [], project.profiles_dir)["hetero"]["seeds"]
+    assert seeds and 0 not in seeds
+    members = [n for n in inst if n.startswith("hetero_seed[")]
+    assert len(members) == 7 * len(seeds)
+    for name in members:
+        member = inst[name]
+        fields = dict(member.bindings)
+        pair = f"source={fields['source']},target={fields['target']}"
+        assert member.inputs["translated"] == f"translate_seed[{pair},seed={fields['seed']}]"
+        assert inst[member.inputs["translated"]].inputs["model"] == f"m2m_seed[seed={fields['seed']}]"
+        assert inst[f"transfer[{pair}]"].inputs["translated"] == f"translate[{pair}]"
+    for s in seeds:
+        member, base = inst[f"m2m_seed[seed={s}]"], inst["m2m"].params
+        assert dict(member.bindings) == {"seed": s} and base["seed"] != s
+        assert member.params == {k: v for k, v in base.items() if k != "seed"}
+
+
 @pytest.fixture(scope="module")
 def ci_store(tmp_path_factory):
     """The whole DAG on the ci profile, once for this module, through the README's first
