@@ -23,9 +23,13 @@ PAIR is SOURCE:TARGET (a `transfer[source,target]` of the profile).  VARIANT, on
   --shear-readout fz         the stored models' shear read as g x its shear + c x its Fz per axis,
                              fitted on the transfer's read-out frames and labels.
 
-The refits train seed k with fit_transfer (the whole transfer from seed k); the re-reads read the
-transfer's model for its own seed and `hetero_seed[source,target,seed=k]` for the others, where
-the profile has them.  --cache DIR keeps M2M's raw translations between runs.
+Seed k reads the pair as its ensemble member does: the transfer's own seed the translation of
+`m2m` (`translate[source,target]`), another seed k the translation of M2M fine-tuned from k
+(`translate_seed[source,target,seed=k]`, `m2m_seed[seed=k]`: a hetero pair of the profile with k
+in hetero.seeds).  The refits train seed k with fit_transfer (the whole transfer from seed k) on
+that translation, redrawn; the re-reads read the transfer's model for its own seed and
+`hetero_seed[source,target,seed=k]` for the others.  --cache DIR keeps M2M's raw translations
+between runs.
 """
 import argparse
 import sys
@@ -94,18 +98,29 @@ def _report(name, y, preds: dict) -> None:
 
 # ------------------------------------------------------------------------- refits
 
-def _raw_translations(get, source, target, cache):
-    """M2M's translations of the source's whole sequence into the target, before any redraw."""
+def _member(get, source, target, seed):
+    """(translate instance, M2M instance) that seed `seed`'s model of the pair reads: the
+    transfer's own seed `translate` and `m2m`, another the member's translate_seed and m2m_seed."""
+    own = int(get(f"transfer[source={source},target={target}]").provenance["params"]["seed"])
+    if seed is None or int(seed) == own:
+        return f"translate[source={source},target={target}]", "m2m"
+    return f"translate_seed[source={source},target={target},seed={int(seed)}]", f"m2m_seed[seed={int(seed)}]"
+
+
+def _raw_translations(get, source, target, cache, seed=None):
+    """M2M's translations of the source's whole sequence into the target, before any redraw, by
+    the M2M seed `seed`'s model reads (_member)."""
     from stages.common import attrs_of
     from stages.m2m.model import load_translator
     from stages.m2m.nodes import CHUNK
-    path = Path(cache) / f"raw_{source}_{target}.npy" if cache else None
+    translation, m2m = _member(get, source, target, seed)
+    tag = "" if m2m == "m2m" else f"_seed{int(seed)}"
+    path = Path(cache) / f"raw_{source}_{target}{tag}.npy" if cache else None
     if path and path.is_file():
         return np.load(path)
-    src, tgt, tra = get(f"markers[skin={source}]"), get(f"markers[skin={target}]"), \
-        get(f"translate[source={source},target={target}]")
+    src, tgt, tra = get(f"markers[skin={source}]"), get(f"markers[skin={target}]"), get(translation)
     steps = int(attrs_of(tra).get("sampler_steps", 1))
-    translator = load_translator(get("m2m"))
+    translator = load_translator(get(m2m))
     ims = src["images"]
     src_ref, tgt_ref = np.asarray(src["reference"], np.uint8), np.asarray(tgt["reference"], np.uint8)
     out = np.concatenate([translator.translate(np.asarray(ims[i:i + CHUNK]), src_ref, tgt_ref, steps)
@@ -128,18 +143,20 @@ def _places(moment, load, contact_id):
     return centroid, centroid * load[:, None]
 
 
-def _redrawn(get, args, source, target):
-    """The translate node's images redrawn per the variant (N, H, W) uint8."""
+def _redrawn(get, args, source, target, seed=None):
+    """The images of the translation seed `seed`'s model reads (_member) redrawn per the
+    variant (N, H, W) uint8."""
     from stages.common import attrs_of
     from stages.m2m.data import paired_table, take_rows
     from stages.markers.uskin import (USKIN_PAD_MM, TAXELS, _draw, dot_changes, load_moments, redraw,
                                       taxel_centres, tilt_changes)
-    tra = get(f"translate[source={source},target={target}]")
+    translation, m2m_name = _member(get, source, target, seed)
+    tra = get(translation)
     tgt, src = get(f"markers[skin={target}]"), get(f"markers[skin={source}]")
     attrs, settings = attrs_of(tra), attrs_of(tgt).get("settings", {})
     if not attrs.get("redraw_taxels"):
         sys.exit(f"{TOOL}: {target} is not a redrawn taxel target (translate's attrs have no redraw)")
-    raw = _raw_translations(get, source, target, args.cache)
+    raw = _raw_translations(get, source, target, args.cache, seed)
     stored = {"gain": tuple(attrs["redraw_gain"])}
     for key in ("shift_gain", "tilt"):
         if f"redraw_{key}" in attrs:
@@ -158,7 +175,7 @@ def _redrawn(get, args, source, target):
     moment, shift = load_moments(offsets, changes, pad)
     load = changes.sum(1)
     centroid, place = _places(moment, load, np.asarray(src["contact_id"]))
-    m2m = attrs_of(get("m2m"))                # the frames M2M's fine-tune paired, as the node fits on
+    m2m = attrs_of(get(m2m_name))             # the frames M2M's fine-tune paired, as the node fits on
     _, rows = paired_table({"s": src, "t": tgt}, ["s", "t"], m2m["train_indenters"],
                            int(m2m.get("pairs_per_skin", 0)))
     real_off, real_area = dot_changes(take_rows(tgt["images"], rows[1]), settings)
@@ -194,18 +211,18 @@ def refit(get, args, source, target, test):
     from stages.force.model import from_arrays, predict_contacts
     from stages.force.nodes import fit_transfer
     tr = get(f"transfer[source={source},target={target}]")
-    tra = get(f"translate[source={source},target={target}]")
     params = dict(tr.provenance["params"])
-    translated = {k: np.asarray(tra[k]) for k in tra.keys()
-                  if k not in ("images", "features", "figures/examples", "eval_frames")}
-    translated["images"] = _redrawn(get, args, source, target)
-    if args.redraw:
-        diff = np.abs(translated["images"].astype(int) - np.asarray(tra["images"]).astype(int)).mean()
-        print(f"redrawn as stored: mean |difference| {diff:.4f} of 255")
-    translated["indenters"] = np.asarray(tra["indenters"]).astype(str)
     cal = lambda sensor: get(f"calibrate[sensor={sensor}]")  # noqa: E731
     preds = {}
     for seed in args.seeds or [int(params["seed"])]:
+        tra = get(_member(get, source, target, seed)[0])
+        translated = {k: np.asarray(tra[k]) for k in tra.keys()
+                      if k not in ("images", "features", "figures/examples", "eval_frames")}
+        translated["images"] = _redrawn(get, args, source, target, seed)
+        if args.redraw:
+            diff = np.abs(translated["images"].astype(int) - np.asarray(tra["images"]).astype(int)).mean()
+            print(f"seed {seed} redrawn as stored: mean |difference| {diff:.4f} of 255")
+        translated["indenters"] = np.asarray(tra["indenters"]).astype(str)
         out = fit_transfer(translated=translated, source_calibration=cal(params["source_spec"]["sensor"]),
                            target_calibration=cal(params["target_spec"]["sensor"]), source=source,
                            target=target, target_markers=get(f"markers[skin={target}]"),
@@ -284,14 +301,18 @@ def reread(get, args, source, target, test):
         lin = lin.get("genforce_comp", lin.get("genforce"))
         if not lin:
             sys.exit(f"{TOOL}: transfer[{source},{target}] has no linear Fz read")
-        fz = recorded_compensation(tra, attrs)[:, 2]
-        coef, intercept = shift_free_coefficients(next(iter(models.values())), tra, tgt,
-                                                  contact_runs(tra, attrs["train_indenters"]), fz, rows)
-        print(f"shift-free read: coefficients {[round(float(c), 1) for c in coef]}, intercept {intercept:.2f}")
         out = {}
-        for seed, m in models.items():
+        for seed, m in models.items():          # each on the translation its model trained on
+            tra_k = get(_member(get, source, target, seed)[0])
+            _, rows_k = _paired_rows(tra_k, tgt, attrs["train_indenters"],
+                                     int(tr.provenance["params"]["align_pairs"]))
+            fz = recorded_compensation(tra_k, attrs)[:, 2]
+            coef, intercept = shift_free_coefficients(m, tra_k, tgt, contact_runs(tra_k, attrs["train_indenters"]),
+                                                      fz, rows_k)
+            print(f"seed {seed} shift-free read: coefficients {[round(float(c), 1) for c in coef]}, "
+                  f"intercept {intercept:.2f}")
             m.set_linear_fz(coef, intercept, float(lin["weight"]))
-            gain, raw = fz_readout(m, tra, tgt, rows)
+            gain, raw = fz_readout(m, tra_k, tgt, rows_k)
             scale_fz(m, gain)
             out[seed] = read(m)
         return stored, out
