@@ -408,14 +408,15 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
     (compensated with the curves, mode and depth ratio stored in `transfer`'s attrs,
     recorded_compensation) and the same two-stage schedule; a linear Fz read where the
     transfer has one, with its weight, fitted on `translated` (attrs linear_fz).  Models of
-    several seeds differ only by chance: their mean is a steadier force reading than any one of them (the
-    control study's ensemble; model_pair: transfer's (source, target), which the graph's
-    templates read), and their spread is the chance in a study's figure (hetero; source,
+    several seeds differ only by chance: their mean is a steadier force reading than any one
+    of them (the control study's ensemble; model_pair: transfer's (source, target), which the
+    graph's templates read), and their spread is the chance in a study's figure (hetero; source,
     target: the fan-out's values, which transfer's attrs hold too).  Returns genforce_comp
     weights and attrs {config, source, target, seed, history, align, spliced, and shear_readout
     where transfer's has one: this model's own gains against transfer's stored readout_shear
-    on the same frames; fz_readout likewise, this model's own gain}.  `align`, `align_pairs`,
-    `splice`, `target_markers` and `checkpoint`: as fit_transfer's."""
+    on the same frames; fz_readout likewise, this model's own gain; linear_fz, this model's own
+    read}.  `align`, `align_pairs`, `splice`, `target_markers` and `checkpoint`: as
+    fit_transfer's."""
     from stages.force.model import to_arrays
     from stages.force.train import fit_two_stage, make_sequences
     info = attrs_of(transfer)
@@ -444,7 +445,7 @@ def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, conf
     linear = linear.get("genforce_comp", linear.get("genforce"))
     if linear:                           # the transfer's read, fitted again on this node's translation
         linear_read = fit_linear_fz_read(models["genforce_comp"], translated, runs, force, target_markers,
-                                            train_indenters, align_pairs, float(linear["weight"]))
+                                         train_indenters, align_pairs, float(linear["weight"]))
     readout = {}
     if "readout_shear" in transfer:
         frames, rows = _paired_rows(translated, target_markers, train_indenters, align_pairs)
