@@ -307,8 +307,8 @@ def reread(get, args, source, target, test):
             _, rows_k = _paired_rows(tra_k, tgt, attrs["train_indenters"],
                                      int(tr.provenance["params"]["align_pairs"]))
             fz = recorded_compensation(tra_k, attrs)[:, 2]
-            coef, intercept = shift_free_coefficients(m, tra_k, tgt, contact_runs(tra_k, attrs["train_indenters"]),
-                                                      fz, rows_k)
+            runs = contact_runs(tra_k, attrs["train_indenters"])
+            coef, intercept = shift_free_coefficients(m, tra_k, tgt, runs, fz, rows_k)
             print(f"seed {seed} shift-free read: coefficients {[round(float(c), 1) for c in coef]}, "
                   f"intercept {intercept:.2f}")
             m.set_linear_fz(coef, intercept, float(lin["weight"]))
