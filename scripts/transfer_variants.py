@@ -76,11 +76,15 @@ class Store:
         self.store = store or str(project.store_dir)
         self.profile = profile
         self.params = P.load(project.params_file, profile, [], project.profiles_dir)
+        self._opened = {}
 
     def __call__(self, instance):
+        """The instance's artifact, looked up (a `pipeline get`) and opened once per run."""
         from pipeline.artifact import Artifact
         from store_lookup import artifact_path
-        return Artifact(artifact_path(self.store, instance, TOOL, profile=self.profile))
+        if instance not in self._opened:
+            self._opened[instance] = Artifact(artifact_path(self.store, instance, TOOL, profile=self.profile))
+        return self._opened[instance]
 
 
 def _score(y, p) -> str:

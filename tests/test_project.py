@@ -66,8 +66,9 @@ def test_hetero_members_train_on_their_own_m2m():
     fine-tuned again from seed s (translate_seed, m2m_seed), with m2m's params but the seed;
     the pair's transfer (seed 0) keeps translate, from m2m."""
     project = find_project(ROOT)
-    inst = project.load_graph().expand(P.load(project.params_file, None, [], project.profiles_dir))
-    seeds = P.load(project.params_file, None, [], project.profiles_dir)["hetero"]["seeds"]
+    params = P.load(project.params_file, None, [], project.profiles_dir)
+    inst = project.load_graph().expand(params)
+    seeds = params["hetero"]["seeds"]
     assert seeds and 0 not in seeds
     members = [n for n in inst if n.startswith("hetero_seed[")]
     assert len(members) == 7 * len(seeds)
