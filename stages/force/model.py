@@ -52,8 +52,11 @@ N).  A model can read Fz as a weighted mean of the network's reading and a linea
 :func:`image_statistics` (how much the frame brightens and darkens against the reference, and
 over how many pixels), which is not clipped.  Where marker images are drawn from taxel signals
 (a uSkin dot's area grows with its taxel's normal count) that change is nearly linear in the
-normal force; where markers move (GelSight, TacTip) it is not, and the read is left off
-(stages.force.nodes.fit_linear_fz_read fits it, :func:`fit_linear_fz`).
+normal force, and nearly so on TacTip, whose press pushes aside the pins it covers; where
+GelSight's markers shift by fractions of their size it is not, and the read is left off
+(stages.force.nodes.fit_linear_fz_read fits it, :func:`fit_linear_fz`; fitted on a skin's
+training contacts, it reads the unseen ones' Fz at R2 0.98 on the z-only uSkin, 0.83 on the
+3-axis one, 0.79 on TacTip, 0.64-0.74 on GelSight A-II and D-I).
 
 Outputs are min-max normalised per axis over [force_min, force_max] (labels outside are
 clipped), so the sigmoid's range is the force range.  force_min = force_max = "auto" (the

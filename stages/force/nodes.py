@@ -154,7 +154,7 @@ def fit_own(*, markers: Mapping, skin: str, train_indenters: Sequence[str], conf
 
     Trained on the contacts of `train_indenters` (source-only model when the skin is a source,
     the oracle when it is a target).  `linear_fz` and `skin_spec` (the skin's): its Fz read
-    as fit_transfer's models read a target of the same signal source, the linear read fitted
+    as fit_transfer's models read a target of the same look, the linear read fitted
     on the skin's own frames and labels (attrs linear_fz).  Returns weights/..., attrs
     {config, skin, train_indenters, history} and figures/loss.  `checkpoint` (the engine's): the training
     resumes from there after an interruption (stages.force.train.Checkpoint).
@@ -228,9 +228,9 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     translations they are paired with in the training sequences (splice_paired), keeping the
     source's labels; "mix" trains on each contact as translated and as spliced
     (_training_images).
-    `linear_fz` (a skin's signal source, `target_spec["source"]` -> weight): both models read
+    `linear_fz` (a skin's look, `target_spec["look"]` -> weight): both models read
     Fz partly as a linear read of the image's statistics (fit_linear_fz_read; attrs linear_fz),
-    weighted so; a source it does not name, weight 0, reads the network's Fz alone.
+    weighted so; a look it does not name, weight 0, reads the network's Fz alone.
     `fz_readout` ("none", "up"): after the rest, genforce_comp's Fz is scaled by fz_readout's
     gain, how it reads the target's own frames against the translations at the `align_pairs`
     location-paired frames, where it reads them lower (attrs fz_readout; the seeds fit their
@@ -578,17 +578,23 @@ def _target_predictions(model, target_markers: Mapping, rows: np.ndarray) -> np.
 
 
 def linear_fz_weight(linear_fz: Mapping | None, target_spec: Mapping | None, name: str) -> float:
-    """The weight of the linear Fz read for a target: `linear_fz` (signal source -> weight in
-    [0, 1]) at the target skin's `source` ("render", "taxels"); 0 where it names none."""
+    """The weight of the linear Fz read for a target: `linear_fz` (a skin's look -> weight in
+    [0, 1]) at the target skin's `look` (stages.markers.unify.LOOKS: "taxel", the uSkins, whose
+    marker images are drawn from taxel signals; "tactip", whose pins the press pushes aside);
+    0 where it names none.  A key that is no look is a one-line InputError."""
     from stages.common import InputError
+    from stages.markers.unify import LOOKS
     if not linear_fz:
         return 0.0
     if not isinstance(linear_fz, Mapping):
-        raise InputError(f"{name}: linear_fz must map a skin's signal source to a weight, got {linear_fz!r}")
-    source = str((target_spec or {}).get("source", ""))
-    weight = linear_fz.get(source, 0.0)
+        raise InputError(f"{name}: linear_fz must map a skin's look to a weight, got {linear_fz!r}")
+    unknown = sorted(str(k) for k in linear_fz if k not in LOOKS)
+    if unknown:
+        raise InputError(f"{name}: linear_fz names {unknown}, which are not looks {list(LOOKS)}")
+    look = str((target_spec or {}).get("look", ""))
+    weight = linear_fz.get(look, 0.0)
     if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not 0.0 <= float(weight) <= 1.0:
-        raise InputError(f"{name}: linear_fz[{source!r}] must be a number in [0, 1], got {weight!r}")
+        raise InputError(f"{name}: linear_fz[{look!r}] must be a number in [0, 1], got {weight!r}")
     return float(weight)
 
 
@@ -600,8 +606,9 @@ def fit_linear_fz_read(model, translated: Mapping, runs, force: np.ndarray, targ
     location-paired frames (_paired_rows: `pairs` of them, as the alignment reads; none without
     `target_markers`).  The network's Fz is bounded by its training labels' range (the
     sigmoid); the linear read is not, and where the marker image is drawn from taxel signals
-    (a uSkin dot's area grows with its taxel's normal count) the image's change is nearly
-    linear in the normal force.  Returns the fit's info, with weight."""
+    (a uSkin dot's area grows with its taxel's normal count), or on TacTip, whose press pushes
+    aside the pins it covers, the image's change is nearly linear in the normal force.
+    Returns the fit's info, with weight."""
     from stages.force.model import fit_linear_fz, image_statistics, prepare
     from stages.m2m.data import take_rows
     cfg = model.config

@@ -1209,11 +1209,12 @@ def test_linear_fz_read_blends_fz_past_the_range_and_leaves_shear(trained):
         blended.set_linear_fz(coef[:3], b, 0.5)
 
 
-def test_fit_transfer_linear_fz_on_taxel_targets_only(skins, tiny_config):
-    """linear_fz {"taxels": 0.5}: a target skin drawn from taxels gets the linear read in both
-    models (fitted on the translations, scaled on the paired frames; attrs linear_fz), a
-    rendered one none, the same weights either way; the seed models read the transfer's; a bad
-    weight is the user's one-line error before any training."""
+def test_fit_transfer_linear_fz_on_the_looks_it_names_only(skins, tiny_config):
+    """linear_fz {"taxel": 0.5, "tactip": 0.5}: a target skin of a look it names gets the linear
+    read in both models (fitted on the translations, scaled on the paired frames; attrs
+    linear_fz), a GelSight none, the same weights either way; the seed models read the
+    transfer's; a bad weight or a key that is no look is the user's one-line error before any
+    training."""
     kw = dict(config={**tiny_config, "seq_len": 10}, steps=4, batch_size=2, lr=0.05, seed=0,
               train_indenters=["sphere", "prism", "cone"], source_calibration=_calibration_art(1.0),
               target_calibration=_calibration_art(2.0), source="B", target="A", finetune_steps=0)
@@ -1221,10 +1222,11 @@ def test_fit_transfer_linear_fz_on_taxel_targets_only(skins, tiny_config):
     translated = dict(skins["A"], paired=np.arange(n) % 3 == 0)
     wider = np.maximum(translated["images"], np.roll(translated["images"], 1, axis=-1))   # wider blobs
     target = dict(translated, images=wider)
+    looks = {"taxel": 0.5, "tactip": 0.5}
     taxels = fit_transfer(translated=translated, target_markers=target, align_pairs=8,
-                          linear_fz={"taxels": 0.5}, target_spec={"source": "taxels"}, **kw)
+                          linear_fz=looks, target_spec={"source": "taxels", "look": "taxel"}, **kw)
     render = fit_transfer(translated=translated, target_markers=target, align_pairs=8,
-                          linear_fz={"taxels": 0.5}, target_spec={"source": "render"}, **kw)
+                          linear_fz=looks, target_spec={"source": "render", "look": "gelsight"}, **kw)
     assert "linear_fz" not in render["attrs"]
     info = taxels["attrs"]["linear_fz"]
     assert set(info) == {"genforce", "genforce_comp"} and info["genforce_comp"]["pairs"] == 8
@@ -1245,9 +1247,13 @@ def test_fit_transfer_linear_fz_on_taxel_targets_only(skins, tiny_config):
                                                                  "finetune_steps", "train_indenters")})
     for k, v in taxels["genforce_comp"].items():
         np.testing.assert_array_equal(seed["genforce_comp"][k], v)
-    with pytest.raises(InputError, match=r"transfer\[B->A\]: linear_fz\['taxels'\] must be a number in \[0, 1\], got 'half'"):
-        fit_transfer(translated=translated, target_markers=target, linear_fz={"taxels": "half"},
-                     target_spec={"source": "taxels"}, checkpoint="/nonexistent/x", **kw)
+    with pytest.raises(InputError, match=r"transfer\[B->A\]: linear_fz\['tactip'\] must be a number in \[0, 1\], got 'half'"):
+        fit_transfer(translated=translated, target_markers=target, linear_fz={"tactip": "half"},
+                     target_spec={"look": "tactip"}, checkpoint="/nonexistent/x", **kw)
+    with pytest.raises(InputError, match=r"transfer\[B->A\]: linear_fz names \['taxels'\], which are not looks "
+                                         r"\['none', 'gelsight', 'tactip', 'taxel'\]"):
+        fit_transfer(translated=translated, target_markers=target, linear_fz={"taxels": 0.5},
+                     target_spec={"look": "taxel"}, checkpoint="/nonexistent/x", **kw)
 
 
 def test_fit_own_linear_fz_on_a_taxel_skin(nodes_out, skins):
@@ -1258,12 +1264,12 @@ def test_fit_own_linear_fz_on_a_taxel_skin(nodes_out, skins):
     kw = dict(config=own["A"]["attrs"]["config"] | own["A"]["attrs"]["train"], steps=4, batch_size=2,
               lr=0.05, seed=0, train_indenters=["sphere", "prism", "cone"])
     kw["config"] = {k: v for k, v in kw["config"].items() if k not in ("force_min", "force_max")}
-    out = fit_own(markers=skins["A"], skin="A", linear_fz={"taxels": 0.5}, skin_spec={"source": "taxels"}, **kw)
+    out = fit_own(markers=skins["A"], skin="A", linear_fz={"taxel": 0.5}, skin_spec={"look": "taxel"}, **kw)
     info = out["attrs"]["linear_fz"]
     assert info["pairs"] == 0 and info["scale"] == [1.0] * 4 and info["weight"] == 0.5 and 0 < info["r2"] <= 1
     assert float(out["weights"]["fz_weight"][0]) == 0.5 and float(own["A"]["weights"]["fz_weight"][0]) == 0.0
     for k, v in own["A"]["weights"].items():
         if k not in ("fz_linear", "fz_weight"):
             np.testing.assert_array_equal(out["weights"][k], v)
-    with pytest.raises(InputError, match=r"own\[A\]: linear_fz must map a skin's signal source to a weight"):
-        fit_own(markers=skins["A"], skin="A", linear_fz=[0.5], skin_spec={"source": "taxels"}, **kw)
+    with pytest.raises(InputError, match=r"own\[A\]: linear_fz must map a skin's look to a weight"):
+        fit_own(markers=skins["A"], skin="A", linear_fz=[0.5], skin_spec={"look": "taxel"}, **kw)
