@@ -19,7 +19,7 @@ thread counts.  Rows:
   stream ms/frame     StreamingPredictor.step latency (median over 200 frames)
   x 40 Hz             how many times faster than a 40 Hz sensor (25 ms per frame) streaming is
   +linear Fz ms/frame the same model streaming with the linear Fz read (set_linear_fz), as the
-                      models transferred onto the uSkins read
+                      models transferred onto the uSkins and TacTip read
   mean-of-3 ms/frame  MeanPredictor over 3 streaming models (the control study's ensemble)
   mean-of-3 x 40 Hz   the same against a 40 Hz sensor
   cpu/wall            process CPU time over wall time while training: about the thread count
