@@ -8,8 +8,9 @@ genforce_comp_ensemble).  Nothing is written to the store.
 PAIR is SOURCE:TARGET (a `transfer[source,target]` of the profile).  VARIANT, one of:
 
   --redraw stored            M2M's raw translations redrawn as the translate node redrew them
-                             (its attrs), then fit_transfer with the node's params: reproduces the
-                             stored model of the transfer's seed exactly;
+                             (its attrs: gains, tilt, or the shift read off the source), then
+                             fit_transfer with the node's params: reproduces the stored model of
+                             the transfer's seed exactly;
   --shift-gain X,Y           a 3-axis taxel target's common shift scaled by (X, Y) instead;
   --tilt split               a z-only taxel target's load tilt fitted with the drawn x moment in
                              two parts, each contact's place (its frames' load-weighted mean
@@ -17,6 +18,12 @@ PAIR is SOURCE:TARGET (a `transfer[source,target]` of the profile).  VARIANT, on
   --tilt move                each contact's drawn load pattern moved (linear interpolation over
                              the taxels) so that its centroid lands at the fitted place weight
                              times where M2M drew it (x only), then the tilt refitted;
+  --from-source dots|cells   the redrawn translation's shear cue read off the source's own
+                             images (ridge regression on the paired frames against the target's
+                             own): a 3-axis target's common shift, a z-only target's load moment;
+                             dots: a taxel source's dots (into the 3-axis uSkin what
+                             m2m.redraw_source_shift does), cells: any source's marker image on a
+                             4x4 grid of cells (cell_cues);
   --linear-fz shift-free     the stored models' linear Fz read refitted on the image statistics a
                              dot's motion leaves alike (brightening less darkening, and the two
                              shares' difference), fz_readout redone;
@@ -56,6 +63,7 @@ def _args():
     v.add_argument("--redraw", choices=["stored"])
     v.add_argument("--shift-gain", type=lambda s: tuple(float(x) for x in s.split(",")))
     v.add_argument("--tilt", choices=["split", "move"])
+    v.add_argument("--from-source", choices=["dots", "cells"])
     v.add_argument("--linear-fz", choices=["shift-free"])
     v.add_argument("--shear-readout", choices=["fz"])
     a = p.parse_args()
@@ -166,8 +174,15 @@ def _redrawn(get, args, source, target, seed=None):
         if f"redraw_{key}" in attrs:
             stored[key] = tuple(tuple(v) if isinstance(v, list) else v for v in attrs[f"redraw_{key}"])
     if args.redraw:
+        if "redraw_source_shift" in attrs:              # a 3-axis target's shift read off a taxel source
+            from stages.m2m.nodes import read_source_shift
+            from stages.markers.uskin import redraw_shifted
+            return redraw_shifted(raw, settings, read_source_shift(
+                attrs["redraw_source_shift"], np.asarray(src["images"]), attrs_of(src)["settings"]))
         return redraw(raw, settings, **stored)
     z_only = bool(settings.get("z_only", False))
+    if args.from_source:
+        return _from_source(get, raw, src, tgt, settings, m2m_name, args.from_source)
     if args.shift_gain:
         if z_only:
             sys.exit(f"{TOOL}: --shift-gain is for a 3-axis taxel target; {target} is z-only")
@@ -208,6 +223,61 @@ def _redrawn(get, args, source, target, seed=None):
     base = float(settings.get("base_area"))
     lo, hi = float(settings.get("min_area", base)), float(settings.get("max_area", 16.0))
     areas = np.clip(base + changes, lo, hi)
+    return _draw(np.repeat(taxel_centres(pad)[None], len(raw), 0), areas, size=raw.shape[1:], pad_mm=pad)
+
+
+def cell_cues(images, reference, grid=(4, 4)) -> np.ndarray:
+    """(N, 3*cells): per cell of a grid over the image, the change from the reference of its
+    white area and of its two first moments (pixels, from the cell's centre)."""
+    ims = np.asarray(images, np.float32) / 255.0
+    ref = np.asarray(reference, np.float32) / 255.0
+    n, h, w = ims.shape
+    gy, gx = grid
+    d = ims - ref[None]
+    ys = (np.arange(h) + 0.5) % (h / gy) - h / gy / 2
+    xs = (np.arange(w) + 0.5) % (w / gx) - w / gx / 2
+    cell = lambda a: a.reshape(n, gy, h // gy, gx, w // gx).sum((2, 4)).reshape(n, -1)  # noqa: E731
+    return np.concatenate([cell(d), cell(d * xs[None, None, :]), cell(d * ys[None, :, None])], 1)
+
+
+def _from_source(get, raw, src, tgt, settings, m2m_name, mode):
+    """The translation's shear cue read off the source's own images instead of M2M's drawing,
+    by ridge regression (RidgeCV) on the paired frames against the target's own: a 3-axis
+    target's common shift (uskin.redraw_shifted), a z-only target's load moment (a plane across
+    the pad, as the tilt).  mode "dots": a taxel source's uskin.dot_features (on a 3-axis
+    target what m2m.redraw_source_shift does); "cells": any source's cell_cues, standardised on
+    the paired frames."""
+    from sklearn.linear_model import RidgeCV
+    from stages.common import attrs_of
+    from stages.m2m.data import paired_table, take_rows
+    from stages.m2m.nodes import SHIFT_READ_ALPHAS
+    from stages.markers.uskin import (USKIN_PAD_MM, _draw, dot_changes, dot_features, load_moments,
+                                      redraw_shifted, taxel_centres, tilt_changes)
+    src_settings = attrs_of(src).get("settings")
+    if mode == "dots" and not src_settings:
+        sys.exit(f"{TOOL}: --from-source dots needs a taxel source")
+    m2m = attrs_of(get(m2m_name))
+    _, rows = paired_table({"s": src, "t": tgt}, ["s", "t"], m2m["train_indenters"],
+                           int(m2m.get("pairs_per_skin", 0)))
+    images, alphas = src["images"], SHIFT_READ_ALPHAS
+    if mode == "cells":
+        x = np.concatenate([cell_cues(np.asarray(images[i:i + 512]), np.asarray(src["reference"]))
+                            for i in range(0, len(images), 512)])
+        sd = x[rows[0]].std(0)
+        x, alphas = (x - x[rows[0]].mean(0)) / np.where(sd > 1e-9, sd, 1.0), np.logspace(-4, 4, 33)
+    else:
+        x = dot_features(np.asarray(images), src_settings)
+    pad = tuple(float(v) for v in settings.get("pad_mm", USKIN_PAD_MM))
+    real_moment, real_shift = load_moments(*dot_changes(take_rows(tgt["images"], rows[1]), settings), pad)
+    z_only = bool(settings.get("z_only", False))
+    want_of = real_moment if z_only else real_shift
+    want = np.stack([RidgeCV(alphas=alphas).fit(x[rows[0]], want_of[:, k]).predict(x) for k in (0, 1)], 1)
+    if not z_only:
+        return redraw_shifted(raw, settings, want)
+    offsets, changes = dot_changes(raw, settings)
+    changes = tilt_changes(changes, load_moments(offsets, changes, pad)[0], want, pad)
+    base = float(settings.get("base_area"))
+    areas = np.clip(base + changes, float(settings.get("min_area", base)), float(settings.get("max_area", 16.0)))
     return _draw(np.repeat(taxel_centres(pad)[None], len(raw), 0), areas, size=raw.shape[1:], pad_mm=pad)
 
 

@@ -129,7 +129,7 @@ GRAPH.node("translate", "stages.m2m.nodes:translate_sequence",
            inputs={"model": "m2m", "source_markers": "markers[skin={source}]",
                    "target_markers": "markers[skin={target}]"},
            params={**_EVAL, "sampler_steps": "m2m.sampler_steps", "redraw_taxels": "m2m.redraw_taxels",
-                   "redraw_match": "m2m.redraw_match"},
+                   "redraw_match": "m2m.redraw_match", "redraw_source_shift": "m2m.redraw_source_shift"},
            grid={"source,target": _TRANSFER_PAIRS},
            description="a calibrated sensor's sequence in an uncalibrated sensor's style")
 GRAPH.node("flow_warp", "stages.m2m.nodes:flow_warp_sequence",

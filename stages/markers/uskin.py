@@ -229,6 +229,13 @@ def dot_changes(images, settings: Mapping) -> tuple[np.ndarray, np.ndarray]:
     return centres - taxel_centres(pad), areas - float(settings.get("base_area", BASE_AREA))
 
 
+def dot_features(images, settings: Mapping) -> np.ndarray:
+    """(N, 48): the dots of taxel marker images as one row per frame, their offsets along x,
+    then along y (mm), then their area changes (mm^2), as dot_changes reads them."""
+    offsets, changes = dot_changes(images, settings)
+    return np.concatenate([offsets[..., 0], offsets[..., 1], changes], 1)
+
+
 def load_moments(offsets, changes, pad_mm=USKIN_PAD_MM) -> tuple[np.ndarray, np.ndarray]:
     """The shear cues of taxel dots read by dot_changes: the first moment of their area changes
     over the pad (N, 2) mm^3, sum of change times taxel position from the pad's centre (a
@@ -319,6 +326,30 @@ def redraw(images, settings: Mapping, supersample: int = 4, gain=(1.0, 1.0, 1.0)
     areas = base_area + changes * g[2]
     return _draw(centres, np.clip(areas, min_area, max_area), size=ims.shape[1:], pad_mm=pad,
                  supersample=supersample)
+
+
+def redraw_shifted(images, settings: Mapping, shift, supersample: int = 4) -> np.ndarray:
+    """Images (N, H, W) 0/255 of a 3-axis taxel skin's dots (read_dots) drawn again as redraw
+    draws them, each frame's common shift (the mean offset of its 16 dots) set to `shift`
+    (N, 2) mm and the rest of each dot's offset and its area kept (clipped as redraw clips)."""
+    ims = np.asarray(images)
+    want = np.asarray(shift, float)
+    if ims.ndim != 3:
+        raise ValueError(f"redraw_shifted: images must be (N,H,W), got {ims.shape}")
+    if want.shape != (len(ims), 2) or not np.isfinite(want).all():
+        raise ValueError(f"redraw_shifted: shift must be ({len(ims)}, 2) finite numbers (mm), one row "
+                         f"per image, got shape {want.shape}")
+    if settings.get("z_only", False):
+        raise ValueError("redraw_shifted: a z-only skin's dots cannot move")
+    pad = tuple(float(v) for v in settings.get("pad_mm", USKIN_PAD_MM))
+    base_area = float(settings.get("base_area", BASE_AREA))
+    offsets, changes = dot_changes(ims, {**settings, "pad_mm": pad, "base_area": base_area})
+    offsets = offsets - offsets.mean(1, keepdims=True) + want[:, None]
+    limit = float(settings.get("max_offset", 0.8)) * np.array([pad[0] / TAXELS[1], pad[1] / TAXELS[0]])
+    areas = np.clip(base_area + changes, float(settings.get("min_area", base_area)),
+                    float(settings.get("max_area", 16.0)))
+    return _draw(taxel_centres(pad) + np.clip(offsets, -limit, limit), areas, size=ims.shape[1:],
+                 pad_mm=pad, supersample=supersample)
 
 
 def _values(sensor, data) -> np.ndarray:

@@ -1,5 +1,5 @@
-"""scripts/transfer_variants.py: the place part of a z-only skin's load moment, and the linear Fz
-read on the statistics a dot's motion leaves alike."""
+"""scripts/transfer_variants.py: the place part of a z-only skin's load moment, the linear Fz
+read on the statistics a dot's motion leaves alike, and the cell cues of any marker image."""
 import sys
 
 import numpy as np
@@ -52,3 +52,25 @@ def test_a_shift_gain_that_is_not_two_positive_numbers_is_refused(variants, monk
     with pytest.raises(SystemExit):
         variants._args()
     assert "--shift-gain takes two positive numbers X,Y, got (1.5, -1.0)" in capsys.readouterr().err
+
+
+def test_cell_cues_read_a_dots_motion_as_its_cells_first_moment(variants):
+    """A 5x5 px square moved 3 px right in the second cell of a 4x4 grid over 32x32 px: that
+    cell's area change is 0 and its x first moment grows by area times 3 px (y: 0); a dot that
+    grows adds its new pixels to its cell's area."""
+    ref = np.zeros((32, 32), np.uint8)
+    ref[1:6, 9:14] = 255                         # cell (0, 1): rows 0-7, columns 8-15
+    moved = np.zeros_like(ref)
+    moved[1:6, 12:17] = 255                      # 3 px right, one column into cell (0, 2)
+    grown = ref.copy()
+    grown[6, 9:14] = 255
+    cues = variants.cell_cues(np.stack([ref, moved, grown]), ref)
+    assert cues.shape == (3, 48)
+    np.testing.assert_allclose(cues[0], 0.0)
+    area, mx, my = cues[1, :16], cues[1, 16:32], cues[1, 32:]
+    assert area[1] == pytest.approx(-5.0) and area[2] == pytest.approx(5.0)   # one column crossed
+    # x from the cell's centre: columns 9-13 at -2.5..1.5 px, then 12-15 at 0.5..3.5 px, 5 rows
+    assert mx[1] == pytest.approx(5 * (0.5 + 1.5 + 2.5 + 3.5) - 5 * (-2.5 - 1.5 - 0.5 + 0.5 + 1.5))
+    # y: rows 1-5 at -2.5..1.5 px (sum -2.5 a column): cell (0, 1) loses a column, (0, 2) gains it
+    assert my[1] == pytest.approx(2.5) and my[2] == pytest.approx(-2.5)
+    assert cues[2, 1] == pytest.approx(5.0) and cues[2, 33] == pytest.approx(5 * 2.5)

@@ -384,3 +384,62 @@ def test_translate_redraw_match_draws_with_the_matched_gain(skins, trained, monk
     assert unmatched["attrs"]["redraw_gain"] == [1.0, 1.0, 1.0] and "redraw_shift_gain" not in unmatched["attrs"]
     with pytest.raises(ValueError, match=r"m2m.redraw_match must be one of none, spread, shift, got True"):
         run_node(nodes.translate_sequence(**run, redraw_match=True))
+
+
+def _z_source(skins, tilt=((0.3, 60.0), (0.3, -60.0))):
+    """(z-only source skin, its settings, 3-axis target skin, its settings): the target's dots
+    move with a random common shift, and the source is the same frames drawn z-only with that
+    shift turned into a tilt of the load (uskin.redraw's tilt), as a shear shows on a z-only
+    skin."""
+    from stages.markers.uskin import redraw
+    tgt, settings = _taxel_skin(skins["Circle3"], seed=2, shift=4000.0)
+    z_settings = {**settings, "z_only": True, "min_area": 0.5}
+    src = {**tgt, "images": redraw(tgt["images"], z_settings, tilt=tilt),
+           "reference": redraw(tgt["reference"][None], z_settings)[0],
+           "attrs": {"look": "taxel", "settings": z_settings}}
+    return src, z_settings, tgt, settings
+
+
+def test_source_shift_read_reads_the_common_shift_off_a_z_only_sources_load(skins):
+    """The common shift of a 3-axis skin's dots, read by ridge regression off a z-only skin's
+    dots whose load it tilted, fitted on the paired frames: follows the skin's own common shift
+    at correlation > 0.95 on both axes (the z-only dots themselves do not move)."""
+    from stages.markers.uskin import dot_changes, load_moments
+    src, z_settings, tgt, settings = _z_source(skins)
+    read = nodes.source_shift_read(src, tgt, ["sphere"], 0, z_settings, settings)
+    assert np.asarray(read["coef"]).shape == (2, 48) and len(read["intercept"]) == len(read["alpha"]) == 2
+    assert all(a in nodes.SHIFT_READ_ALPHAS for a in read["alpha"])
+    got = nodes.read_source_shift(read, src["images"], z_settings)
+    _, shift = load_moments(*dot_changes(tgt["images"], settings))
+    _, z_shift = load_moments(*dot_changes(src["images"], z_settings))
+    assert np.abs(z_shift).max() < 1e-9
+    for k in (0, 1):
+        assert np.corrcoef(got[:, k], shift[:, k])[0, 1] > 0.95
+
+
+def test_translate_redraw_source_shift_reads_the_shift_off_a_taxel_source(skins, trained, monkeypatch):
+    """translate from a taxel skin into a listed 3-axis taxel skin with redraw_source_shift: the
+    images are the plain translation redrawn with the common shift source_shift_read reads off
+    the source's dots (attrs redraw_source_shift), with no matched shift gain; without it, or
+    from a camera skin, the shift gain as before; a value that is not a bool is refused."""
+    from stages.m2m.model import load_translator
+    from stages.markers.uskin import redraw_shifted
+    monkeypatch.setattr("stages.imagemetrics.inception_features",
+                        lambda images, **kw: np.zeros((len(images), 4)))
+    src, z_settings, tgt, settings = _z_source(skins)
+    run = dict(model=trained, target_markers=tgt, eval_indenters=["wave"], n_eval=4, target="uskin-3axis",
+               redraw_taxels=["uskin-3axis"], redraw_match="shift")
+    chunks, out = run_node(nodes.translate_sequence(**run, source_markers=src, redraw_source_shift=True))
+    read = nodes.source_shift_read(src, tgt, ["sphere"], 0, z_settings, settings)
+    assert out["attrs"]["redraw_source_shift"] == read
+    assert out["attrs"]["redraw_gain"] == [1.0, 1.0, 1.0] and "redraw_shift_gain" not in out["attrs"]
+    translator = load_translator(trained)
+    plain = translator.translate(src["images"], src["reference"], tgt["reference"], 1)
+    np.testing.assert_array_equal(np.concatenate([c["images"] for c in chunks]),
+                                  redraw_shifted(plain, settings, nodes.read_source_shift(read, src["images"], z_settings)))
+    _, off = run_node(nodes.translate_sequence(**run, source_markers=src, redraw_source_shift=False))
+    _, camera = run_node(nodes.translate_sequence(**run, source_markers=skins["Circle3"], redraw_source_shift=True))
+    for attrs in (off["attrs"], camera["attrs"]):
+        assert "redraw_source_shift" not in attrs and len(attrs["redraw_shift_gain"]) == 2
+    with pytest.raises(ValueError, match=r"m2m.redraw_source_shift must be true or false, got 'yes'"):
+        run_node(nodes.translate_sequence(**run, source_markers=src, redraw_source_shift="yes"))
