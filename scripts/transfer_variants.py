@@ -18,6 +18,9 @@ PAIR is SOURCE:TARGET (a `transfer[source,target]` of the profile).  VARIANT, on
   --tilt move                each contact's drawn load pattern moved (linear interpolation over
                              the taxels) so that its centroid lands at the fitted place weight
                              times where M2M drew it (x only), then the tilt refitted;
+  --tilt source-shift        a z-only target's tilt (both axes) fitted, and drawn, with a 3-axis
+                             source's own common shift in place of the one M2M drew, then
+                             nodes.shrink_guard as the node applies it;
   --from-source dots|cells   the redrawn translation's shear cue read off the source's own
                              images (ridge regression on the paired frames against the target's
                              own): a 3-axis target's common shift, a z-only target's load moment;
@@ -62,7 +65,7 @@ def _args():
     v = p.add_mutually_exclusive_group(required=True)
     v.add_argument("--redraw", choices=["stored"])
     v.add_argument("--shift-gain", type=lambda s: tuple(float(x) for x in s.split(",")))
-    v.add_argument("--tilt", choices=["split", "move"])
+    v.add_argument("--tilt", choices=["split", "move", "source-shift"])
     v.add_argument("--from-source", choices=["dots", "cells"])
     v.add_argument("--linear-fz", choices=["shift-free"])
     v.add_argument("--shear-readout", choices=["fz"])
@@ -205,7 +208,18 @@ def _redrawn(get, args, source, target, seed=None):
     a_y, b_y = np.asarray(stored.get("tilt", ((1.0, 0.0), (1.0, 0.0))), float)[1]   # y: the node's tilt
     want = moment.copy()
     want[:, 1] = a_y * moment[:, 1] + b_y * shift[:, 1]
-    if args.tilt == "split":
+    if args.tilt == "source-shift":             # the shift term from a 3-axis source's own dots
+        s_off, s_area = dot_changes(np.asarray(src["images"]), attrs_of(src)["settings"])
+        _, s_shift = load_moments(s_off, s_area, pad)
+        from stages.m2m.nodes import shrink_guard
+        for k in (0, 1):
+            fit = np.stack([moment[r0, k], s_shift[r0, k]], 1)
+            (a, b), *_ = np.linalg.lstsq(fit, real_moment[:, k], rcond=None)
+            ga, gb = shrink_guard(k, (float(a), float(b)), changes[r0], moment[r0], s_shift[r0], real_area,
+                                  real_moment, settings, pad)
+            print(f"tilt {'xy'[k]} on the source's shift: a {a:.3f}, b {b:.1f}; guarded {ga:.3f}, {gb:.1f}")
+            want[:, k] = ga * moment[:, k] + gb * s_shift[:, k]
+    elif args.tilt == "split":
         print(f"tilt x: place {w_place:.3f}, drift {w_drift:.3f}, b {b:.1f}")
         want[:, 0] = x @ np.array([w_place, w_drift, b])
     else:
