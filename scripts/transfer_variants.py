@@ -163,8 +163,7 @@ def _redrawn(get, args, source, target, seed=None):
     variant (N, H, W) uint8."""
     from stages.common import attrs_of
     from stages.m2m.data import paired_table, take_rows
-    from stages.markers.uskin import (USKIN_PAD_MM, TAXELS, _draw, dot_changes, load_moments, redraw,
-                                      taxel_centres, tilt_changes)
+    from stages.markers.uskin import USKIN_PAD_MM, TAXELS, dot_changes, load_moments, redraw
     translation, m2m_name = _member(get, source, target, seed)
     tra = get(translation)
     tgt, src = get(f"markers[skin={target}]"), get(f"markers[skin={source}]")
@@ -233,11 +232,18 @@ def _redrawn(get, args, source, target, seed=None):
         (a, b), *_ = np.linalg.lstsq(fit, real_moment[:, 0], rcond=None)
         print(f"contacts moved by place weight {w_place:.3f}; tilt x refitted: a {a:.3f}, b {b:.1f}")
         want = np.stack([a * moment[:, 0] + b * shift[:, 0], a_y * moment[:, 1] + b_y * shift[:, 1]], 1)
-    changes = tilt_changes(changes, moment, want, pad)
+    return _draw_tilted(changes, moment, want, settings, pad, raw.shape[1:])
+
+
+def _draw_tilted(changes, moment, want, settings, pad, size):
+    """A z-only skin's images: its dots at their taxels, their area changes (N, 16) tilted so that
+    their first moment `moment` (N, 2) becomes `want` (uskin.tilt_changes), clipped as the skin
+    draws them."""
+    from stages.markers.uskin import _draw, taxel_centres, tilt_changes
     base = float(settings.get("base_area"))
-    lo, hi = float(settings.get("min_area", base)), float(settings.get("max_area", 16.0))
-    areas = np.clip(base + changes, lo, hi)
-    return _draw(np.repeat(taxel_centres(pad)[None], len(raw), 0), areas, size=raw.shape[1:], pad_mm=pad)
+    areas = np.clip(base + tilt_changes(changes, moment, want, pad), float(settings.get("min_area", base)),
+                    float(settings.get("max_area", 16.0)))
+    return _draw(np.repeat(taxel_centres(pad)[None], len(changes), 0), areas, size=size, pad_mm=pad)
 
 
 def cell_cues(images, reference, grid=(4, 4)) -> np.ndarray:
@@ -265,8 +271,7 @@ def _from_source(get, raw, src, tgt, settings, m2m_name, mode):
     from stages.common import attrs_of
     from stages.m2m.data import paired_table, take_rows
     from stages.m2m.nodes import SHIFT_READ_ALPHAS
-    from stages.markers.uskin import (USKIN_PAD_MM, _draw, dot_changes, dot_features, load_moments,
-                                      redraw_shifted, taxel_centres, tilt_changes)
+    from stages.markers.uskin import USKIN_PAD_MM, dot_changes, dot_features, load_moments, redraw_shifted
     src_settings = attrs_of(src).get("settings")
     if mode == "dots" and not src_settings:
         sys.exit(f"{TOOL}: --from-source dots needs a taxel source")
@@ -289,10 +294,7 @@ def _from_source(get, raw, src, tgt, settings, m2m_name, mode):
     if not z_only:
         return redraw_shifted(raw, settings, want)
     offsets, changes = dot_changes(raw, settings)
-    changes = tilt_changes(changes, load_moments(offsets, changes, pad)[0], want, pad)
-    base = float(settings.get("base_area"))
-    areas = np.clip(base + changes, float(settings.get("min_area", base)), float(settings.get("max_area", 16.0)))
-    return _draw(np.repeat(taxel_centres(pad)[None], len(raw), 0), areas, size=raw.shape[1:], pad_mm=pad)
+    return _draw_tilted(changes, load_moments(offsets, changes, pad)[0], want, settings, pad, raw.shape[1:])
 
 
 def refit(get, args, source, target, test):
