@@ -209,7 +209,8 @@ GRAPH.node("hetero_seed", "stages.force.nodes:fit_transfer_seed",
            description="a hetero pair's genforce_comp trained again from another seed, on its own "
                        "M2M's translation (its spread)")
 GRAPH.node("hetero", "stages.studies:transfer_study", inputs={**_STUDY, "seeds": "hetero_seed[*]"},
-           params={**_STUDY_PARAMS, "study": "hetero.study", "groups": "hetero.groups"},
+           params={**_STUDY_PARAMS, "study": "hetero.study", "groups": "hetero.groups",
+                   "ensemble": "force.ensemble", "ensemble_pairs": "m2m.finetune.pairs_per_skin"},
            description="study hetero (paper Fig. 6): GelSight, TacTip, uSkin 3-axis and z-only")
 
 # -- control: the transferred force model in a gripper's loop --------------------------------

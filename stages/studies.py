@@ -33,10 +33,12 @@ def group_means(metrics: Mapping[str, float], study: str, groups: Mapping[str, l
 def transfer_study(*, study: str, groups: Mapping[str, list], features: Mapping, translated: Mapping,
                    warped: Mapping, own: Mapping, transfer: Mapping, markers: Mapping,
                    test_indenters: list, kid_subset: int, trace_frames: int,
-                   seeds: Mapping | None = None, seen_indenters: list = ()) -> dict:
+                   seeds: Mapping | None = None, seen_indenters: list = (), ensemble: str = "mean",
+                   ensemble_pairs: int = 0) -> dict:
     """One study over the pairs of all its groups (a pair in two groups is scored once);
     seeds: genforce_comp models of other regressor seeds, seen_indenters: the training
-    indenters, scored as well (force_study)."""
+    indenters, scored as well, ensemble and ensemble_pairs: how the seeds' models are read as
+    one (force_study)."""
     from stages.force.nodes import force_study
     from stages.m2m.nodes import image_study
     pairs: list[list[str]] = []
@@ -46,7 +48,8 @@ def transfer_study(*, study: str, groups: Mapping[str, list], features: Mapping,
                          warped=warped, kid_subset=kid_subset, markers=markers)
     force = force_study(study=study, pairs=pairs, own=own, transfer=transfer, markers=markers,
                         test_indenters=test_indenters, trace_frames=trace_frames, seeds=seeds,
-                        seen_indenters=seen_indenters)
+                        seen_indenters=seen_indenters, translated=translated, ensemble=ensemble,
+                        ensemble_pairs=ensemble_pairs)
     metrics = {**images.pop("metrics"), **force.pop("metrics")}
     if len(groups) > 1:
         metrics.update(group_means(metrics, study, groups))

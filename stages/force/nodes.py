@@ -33,9 +33,11 @@ LABELS = "labels_comp"
 # genforce_comp over several regressor seeds (transfer's and seed[...]'s): the mean of each
 # metric, and its standard deviation as sd_<metric>
 SEEDS = "genforce_comp_seeds"
-# the same models read as one (force.model.MeanPredictor, as the control study reads its
-# ensemble): the metrics of their mean prediction
+# the same models read as one: the metrics of their mean prediction (force.model.MeanPredictor,
+# as the control study reads its ensemble), per axis weighted by how each reads the target's
+# location-paired frames where the study's `ensemble` is "paired" (ensemble_weights)
 ENSEMBLE = "genforce_comp_ensemble"
+ENSEMBLE_MODES = ("mean", "paired")
 # the transferred models (and source-only) scored on the target's contacts of the seen
 # (training) indenters as well: method <method>_seen.  GenForce never sees the target's labels
 # nor, past the few location-paired frames M2M's fine-tune, the splice and the alignment read,
@@ -648,6 +650,37 @@ def shear_readout(model, target_markers: Mapping, rows: np.ndarray, shear: np.nd
     return gains[0], gains[1]
 
 
+def ensemble_weights(models: Sequence, transfer: Mapping, translated: Mapping, target_markers: Mapping,
+                     indenters: Sequence[str], pairs: int) -> np.ndarray:
+    """(M,3) per-axis weights of the ensemble members `models` of one transfer (its genforce_comp
+    and its seeds' models), each axis's summing to 1: each member's inverse mean squared error on
+    the target's own frames at the `pairs` location-paired frames of `indenters` (the frames the
+    read-outs read, _paired_rows of the transfer's translation `translated`), each read in its
+    whole contact.  Fx, Fy are scored against the transfer's read-out labels (readout_shear,
+    the shear those frames carry; equal weights where it has none), Fz against the compensated
+    label of the translated frame each pairs with (recorded_compensation): the source's labels,
+    no target label is read.  A member whose translation drew the pair worse reads those frames
+    worse, and the test frames too."""
+    if not len(models):
+        raise ValueError("ensemble_weights: no models")
+    frames, rows = _paired_rows(translated, target_markers, indenters, pairs)
+    shear = None
+    if "readout_shear" in transfer:
+        if not np.array_equal(frames, np.asarray(transfer["readout_frame"])):
+            raise ValueError("ensemble_weights: the transfer's read-out frames are not the paired frames "
+                             f"of indenters {list(indenters)} ({pairs} pairs)")
+        shear = np.asarray(transfer["readout_shear"], float)
+    fz = recorded_compensation(translated, attrs_of(transfer), rows[0])[:, 2].astype(float)
+    err = np.ones((len(models), 3))
+    for k, model in enumerate(models):
+        pred = _target_predictions(model, target_markers, rows[1]).astype(float)
+        if shear is not None:
+            err[k, :2] = np.mean((pred[:, :2] - shear) ** 2, axis=0)
+        err[k, 2] = np.mean((pred[:, 2] - fz) ** 2)
+    w = 1.0 / np.maximum(err, 1e-12)
+    return w / w.sum(axis=0)
+
+
 def _check_fz_readout(mode, target_markers, name: str) -> None:
     """A one-line InputError for an fz_readout mode not in FZ_READOUT_MODES, before training;
     a ValueError where it needs the target's frames and has none."""
@@ -805,7 +838,8 @@ def force_study(*, study: str, pairs: Sequence[Sequence[str]], own: Mapping[str,
                 transfer: Mapping[str, Mapping], markers: Mapping[str, Mapping],
                 test_indenters: Sequence[str], trace_frames: int = 1000,
                 seeds: Mapping[str, Mapping] | None = None,
-                seen_indenters: Sequence[str] = ()) -> dict:
+                seen_indenters: Sequence[str] = (), translated: Mapping[str, Mapping] | None = None,
+                ensemble: str = "mean", ensemble_pairs: int = 0) -> dict:
     """Node `homo` / `material` / `hetero` (force part): four methods per source -> target pair,
     all scored on the target's test contacts (`test_indenters`) against the target's labels:
 
@@ -822,16 +856,28 @@ def force_study(*, study: str, pairs: Sequence[Sequence[str]], own: Mapping[str,
     of, the method SEEDS: genforce_comp's metrics averaged over transfer's model and those,
     with sd_<metric> their standard deviation, and the method ENSEMBLE: the metrics of the
     mean of those models' predictions (means over pairs in `<study>/mean/` when every pair
-    has them).  With `seen_indenters` (the training indenters), source_only, genforce and
+    has them).  `ensemble` "mean" reads the members with equal weights; "paired" weighs them per
+    axis by how each reads the target's location-paired frames of `seen_indenters`
+    (`ensemble_pairs` of them, the read-outs' frames; ensemble_weights, which needs the pair's
+    translation in `translated`: "source=..,target=.." -> translate artifact), attrs
+    ensemble_weights ("source_target" -> (members, 3) weights, the transfer's model first).
+    With `seen_indenters` (the training indenters), source_only, genforce and
     genforce_comp are also scored on the target's contacts of those: methods `<method>_seen`
     (SEEN; the paper's seen / unseen split), figure seen_unseen.  Arrays mae/<method> (pairs,
     4: fx, fy, fz, total), r2/<method> (pairs, 3), pairs ("source_target"), sources, targets,
     trace/*; figures radar (MAE), r2_hist, trace, violin.
     """
     from stages.common import torch_threads
+    from stages.common import InputError
+    if ensemble not in ENSEMBLE_MODES:
+        raise InputError(f"force_study[{study}]: ensemble {ensemble!r} is not one of {ENSEMBLE_MODES}")
+    if ensemble == "paired" and seeds and not seen_indenters:
+        raise ValueError(f"force_study[{study}]: ensemble 'paired' weighs the members on paired frames "
+                         "of the training indenters, and seen_indenters names none")
     with torch_threads():
         return _force_study(study, pairs, own, transfer, markers, test_indenters, trace_frames,
-                            seeds or {}, list(seen_indenters or ()))
+                            seeds or {}, list(seen_indenters or ()), translated or {}, ensemble,
+                            int(ensemble_pairs))
 
 
 def _seed_models(seeds: Mapping[str, Mapping], source: str, target: str) -> list[Mapping]:
@@ -845,7 +891,7 @@ def _seed_models(seeds: Mapping[str, Mapping], source: str, target: str) -> list
 
 
 def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_frames, seeds,
-                 seen_indenters) -> dict:
+                 seen_indenters, translated, ensemble, ensemble_pairs) -> dict:
     from stages.common import torch_device
     from stages.force.metrics import METRICS, force_metrics
     from stages.force.model import load_model, predict_contacts
@@ -868,7 +914,7 @@ def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_fra
     overlap = sorted(set(map(str, seen_indenters)) & set(map(str, test_indenters)))
     if overlap:
         raise ValueError(f"force_study[{study}]: indenters {overlap} are both seen and test indenters")
-    tests, seen_sets, oracle_pred, metrics = {}, {}, {}, {}
+    tests, seen_sets, oracle_pred, metrics, weights = {}, {}, {}, {}, {}
     per_pair: list[dict] = []
     for s, t in pairs:
         if t not in tests:
@@ -889,14 +935,23 @@ def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_fra
                 metrics[f"{study}/{s}_{t}/{m}/{k}"] = v
         members = _seed_models(seeds, s, t)
         if members:
-            member_preds = [preds["genforce_comp"]] + [predict(load(m, "genforce_comp"), test)
-                                                       for m in members]
+            member_models = [models["genforce_comp"]] + [load(m, "genforce_comp") for m in members]
+            member_preds = [preds["genforce_comp"]] + [predict(m, test) for m in member_models[1:]]
             runs = [scores["genforce_comp"]] + [force_metrics(p, test["force"]) for p in member_preds[1:]]
             for k in runs[0]:
                 values = [r[k] for r in runs]
                 metrics[f"{study}/{s}_{t}/{SEEDS}/{k}"] = float(np.mean(values))
                 metrics[f"{study}/{s}_{t}/{SEEDS}/sd_{k}"] = float(np.std(values, ddof=1))
-            for k, v in force_metrics(np.mean(member_preds, axis=0), test["force"]).items():
+            mean = np.mean(member_preds, axis=0)
+            if ensemble == "paired":
+                pair = f"source={s},target={t}"
+                if pair not in translated:
+                    raise KeyError(f"force_study[{study}]: ensemble 'paired' needs translated[{pair!r}]")
+                w = ensemble_weights(member_models, tr, translated[pair], markers[t], seen_indenters,
+                                     ensemble_pairs)
+                weights[f"{s}_{t}"] = np.round(w, 6).tolist()
+                mean = np.einsum("ka,kna->na", w, np.asarray(member_preds, float)).astype(np.float32)
+            for k, v in force_metrics(mean, test["force"]).items():
                 metrics[f"{study}/{s}_{t}/{ENSEMBLE}/{k}"] = v
         if seen_indenters:
             if t not in seen_sets:
@@ -950,6 +1005,7 @@ def _force_study(study, pairs, own, transfer, markers, test_indenters, trace_fra
                       "seen_indenters": list(seen_indenters),
                       "seen_frames": {t: int(len(v["force"])) for t, v in seen_sets.items()},
                       "trace_pair": [rep["source"], rep["target"]],
+                      **({"ensemble_weights": weights} if weights else {}),
                       "test_frames": {t: int(len(v["force"])) for t, v in tests.items()}}}
 
 

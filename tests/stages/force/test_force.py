@@ -14,8 +14,8 @@ from stages.force.metrics import METRICS, force_metrics
 from stages.force.model import (ForceRegressor, MeanPredictor, StreamingPredictor, from_arrays, load_model,
                                 load_predictor, model_config, predict_contacts, predict_sequence,
                                 mirror_group, resolve_range, to_arrays)
-from stages.force.nodes import (METHODS, contact_runs, fit_own, fit_transfer, fit_transfer_seed, force_study,
-                                recorded_compensation)
+from stages.force.nodes import (METHODS, contact_runs, ensemble_weights, fit_own, fit_transfer, fit_transfer_seed,
+                                force_study, recorded_compensation, scale_fz)
 from stages.force.train import fit, make_sequences, mirrored
 
 from force_synthetic import contact_artifact
@@ -617,6 +617,88 @@ def test_force_study_seeds_average_genforce_comp_over_the_seed_models(nodes_out,
     assert m["toy/A_B/genforce_comp_ensemble/mae_total"] != pytest.approx(
         m["toy/A_B/genforce_comp_seeds/mae_total"])
     assert not any("/B_A/genforce_comp_ensemble/" in k or "/mean/genforce_comp_ensemble/" in k for k in m)
+
+
+def _paired(skins):
+    """The toy skins with every frame location-paired (their frames are the same locations)."""
+    return {k: dict(v, paired=np.ones(len(v["frame"]), bool)) for k, v in skins.items()}
+
+
+def test_ensemble_weights_favour_the_member_that_reads_the_paired_frames_better(nodes_out, skins):
+    """Per axis, each member's inverse mean squared error on the target's paired frames,
+    normalised: identical members share equally; a member whose Fz is tripled loses Fz weight
+    and keeps its shear weight where the transfer has no read-out labels; a member that
+    reproduces the read-out labels takes (nearly) all the shear weight; the read-out frames must
+    be the paired frames."""
+    _, same, _ = nodes_out
+    p = _paired(skins)
+    train = ["sphere", "prism", "cone"]
+    model = load_model(same, "genforce_comp")
+    np.testing.assert_array_equal(ensemble_weights([model, model], same, p["B"], p["B"], train, 8),
+                                  np.full((2, 3), 0.5))
+    tripled = load_model(same, "genforce_comp")
+    scale_fz(tripled, 3.0)
+    w = ensemble_weights([model, tripled], same, p["B"], p["B"], train, 8)
+    np.testing.assert_allclose(w.sum(0), 1.0)
+    assert w[0, 2] > 0.6 and w[1, 2] < 0.4 and list(w[:, 0]) == [0.5, 0.5] == list(w[:, 1])
+    # the Fz weights from the members' whole-collection predictions and the labels there
+    # ("same" is the identity compensation: the labels are B's own)
+    from stages.m2m.data import paired_table
+    _, rows = paired_table({"t": p["B"]}, ["t"], train, 8)
+    truth = p["B"]["force"][rows[0], 2]
+    err = [np.mean((predict_contacts(m, p["B"]["images"], p["B"]["contact_id"], p["B"]["reference"])[rows[0], 2]
+                    - truth) ** 2) for m in (model, tripled)]
+    assert w[0, 2] == pytest.approx(err[1] / (err[0] + err[1]), rel=1e-4)
+    # read-out labels equal to the first member's own shear there: it takes the shear weight
+    shear = predict_contacts(model, p["B"]["images"], p["B"]["contact_id"], p["B"]["reference"])[rows[0], :2]
+    labelled = dict(same, readout_frame=p["B"]["frame"][rows[0]], readout_shear=shear)
+    other = load_model(nodes_out[2], "genforce_comp")
+    w = ensemble_weights([model, other], labelled, p["B"], p["B"], train, 8)
+    assert w[0, 0] > 0.999 and w[0, 1] > 0.999
+    with pytest.raises(ValueError, match=r"the transfer's read-out frames are not the paired frames of "
+                                         r"indenters \['sphere', 'prism', 'cone'\] \(4 pairs\)"):
+        ensemble_weights([model], labelled, p["B"], p["B"], train, 4)
+
+
+def test_force_study_paired_ensemble_weighs_its_members(nodes_out, skins):
+    """ensemble "paired": the ensemble's metrics are those of the members' predictions weighted
+    per axis by ensemble_weights (attrs ensemble_weights, the transfer's model first); identical
+    members weigh alike; an unknown mode, or "paired" without seen indenters or without the
+    pair's translation, is a one-line error."""
+    own, same, _ = nodes_out
+    p = _paired(skins)
+    tripled = load_model(same, "genforce_comp")
+    scale_fz(tripled, 3.0)                                # a member that reads Fz three times over
+    tripled = {"genforce_comp": to_arrays(tripled), "attrs": {"config": tripled.config}}
+    seeds = {"source=A,target=B,seed=2": same, "source=A,target=B,seed=1": tripled}
+    kw = dict(study="toy", pairs=[["A", "B"]], own=own, transfer={"source=A,target=B": same},
+              markers=p, test_indenters=["torus"], trace_frames=20, seeds=seeds,
+              seen_indenters=["sphere", "prism", "cone"])
+    out = force_study(**kw, translated={"source=A,target=B": p["B"]}, ensemble="paired", ensemble_pairs=8)
+    w = np.array(out["attrs"]["ensemble_weights"]["A_B"])
+    assert w.shape == (3, 3) and list(w[0]) == list(w[2])
+    np.testing.assert_allclose(w[:, :2], 1 / 3, atol=1e-6)   # no read-out labels: shear alike
+    assert w[1, 2] < 0.2 < 0.4 < w[0, 2]
+    np.testing.assert_allclose(w.sum(0), 1.0, atol=1e-5)
+    rows = np.flatnonzero(np.isin(skins["B"]["contact_id"], [3, 7, 11]))     # the torus contacts
+    pred = [predict_contacts(load_model(a, "genforce_comp", device=torch_device()), skins["B"]["images"][rows],
+                             skins["B"]["contact_id"][rows], skins["B"]["reference"]) for a in (same, tripled)]
+    weighted = (w[0] + w[2]) * pred[0] + w[1] * pred[1]
+    want = force_metrics(weighted.astype(np.float32), skins["B"]["force"][rows])
+    m = out["metrics"]
+    assert m["toy/A_B/genforce_comp_ensemble/mae_total"] == pytest.approx(want["mae_total"], rel=1e-4)
+    assert m["toy/A_B/genforce_comp_ensemble/r2_fz"] == pytest.approx(want["r2_fz"], rel=1e-4)
+    plain = force_study(**kw)["metrics"]
+    assert plain["toy/A_B/genforce_comp_ensemble/mae_fz"] > 1.2 * m["toy/A_B/genforce_comp_ensemble/mae_fz"]
+    assert {k: v for k, v in m.items() if "ensemble" not in k} == {k: v for k, v in plain.items()
+                                                                 if "ensemble" not in k}
+    with pytest.raises(InputError, match=r"force_study\[toy\]: ensemble 'median' is not one of \('mean', 'paired'\)"):
+        force_study(**kw, ensemble="median")
+    with pytest.raises(ValueError, match="ensemble 'paired' weighs the members on paired frames of the "
+                                         "training indenters, and seen_indenters names none"):
+        force_study(**{**kw, "seen_indenters": ()}, ensemble="paired")
+    with pytest.raises(KeyError, match=r"ensemble 'paired' needs translated\['source=A,target=B'\]"):
+        force_study(**kw, ensemble="paired", ensemble_pairs=8)
 
 
 def test_force_study_scores_the_seen_indenters_too(nodes_out, skins):
