@@ -1,7 +1,8 @@
 """A transfer pair refitted or re-read with one of the variants the README's "Tried" lists
 measure, scored as the studies score it: R2 per axis and MAE (N, all axes) on the target's
-contacts of the test indenters, per seed and for the mean of the seeds' predictions (as
-genforce_comp_ensemble).  Nothing is written to the store.
+contacts of the test indenters, per seed and for the plain mean of the seeds' predictions (as
+genforce_comp_ensemble with `force.ensemble: mean`; the default weighs the seeds, which a
+variant's refit would move too).  Nothing is written to the store.
 
     python scripts/transfer_variants.py PAIR [--profile allpairs] [--seeds 0 1 2] VARIANT
 
