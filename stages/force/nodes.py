@@ -867,8 +867,7 @@ def force_study(*, study: str, pairs: Sequence[Sequence[str]], own: Mapping[str,
     4: fx, fy, fz, total), r2/<method> (pairs, 3), pairs ("source_target"), sources, targets,
     trace/*; figures radar (MAE), r2_hist, trace, violin.
     """
-    from stages.common import torch_threads
-    from stages.common import InputError
+    from stages.common import InputError, torch_threads
     if ensemble not in ENSEMBLE_MODES:
         raise InputError(f"force_study[{study}]: ensemble {ensemble!r} is not one of {ENSEMBLE_MODES}")
     if ensemble == "paired" and seeds and not seen_indenters:
