@@ -179,8 +179,7 @@ def _redrawn(get, args, source, target, seed=None):
     if args.redraw:
         if "redraw_source_shift" in attrs:              # a 3-axis target's shift read off a taxel source
             from stages.m2m.nodes import read_source_shift
-            from stages.markers.uskin import redraw_shifted
-            return redraw_shifted(raw, settings, read_source_shift(
+            return redraw(raw, settings, shift=read_source_shift(
                 attrs["redraw_source_shift"], np.asarray(src["images"]), attrs_of(src)["settings"]))
         return redraw(raw, settings, **stored)
     z_only = bool(settings.get("z_only", False))
@@ -264,7 +263,7 @@ def cell_cues(images, reference, grid=(4, 4)) -> np.ndarray:
 def _from_source(get, raw, src, tgt, settings, m2m_name, mode):
     """The translation's shear cue read off the source's own images instead of M2M's drawing,
     by ridge regression (RidgeCV) on the paired frames against the target's own: a 3-axis
-    target's common shift (uskin.redraw_shifted), a z-only target's load moment (a plane across
+    target's common shift (uskin.redraw's shift), a z-only target's load moment (a plane across
     the pad, as the tilt).  mode "dots": a taxel source's uskin.dot_features (on a 3-axis
     target what m2m.redraw_source_shift does); "cells": any source's cell_cues, standardised on
     the paired frames."""
@@ -272,7 +271,7 @@ def _from_source(get, raw, src, tgt, settings, m2m_name, mode):
     from stages.common import attrs_of
     from stages.m2m.data import paired_table, take_rows
     from stages.m2m.nodes import SHIFT_READ_ALPHAS
-    from stages.markers.uskin import USKIN_PAD_MM, dot_changes, dot_features, load_moments, redraw_shifted
+    from stages.markers.uskin import USKIN_PAD_MM, dot_changes, dot_features, load_moments, redraw
     src_settings = attrs_of(src).get("settings")
     if mode == "dots" and not src_settings:
         sys.exit(f"{TOOL}: --from-source dots needs a taxel source")
@@ -293,7 +292,7 @@ def _from_source(get, raw, src, tgt, settings, m2m_name, mode):
     want_of = real_moment if z_only else real_shift
     want = np.stack([RidgeCV(alphas=alphas).fit(x[rows[0]], want_of[:, k]).predict(x) for k in (0, 1)], 1)
     if not z_only:
-        return redraw_shifted(raw, settings, want)
+        return redraw(raw, settings, shift=want)
     offsets, changes = dot_changes(raw, settings)
     return _draw_tilted(changes, load_moments(offsets, changes, pad)[0], want, settings, pad, raw.shape[1:])
 

@@ -438,11 +438,11 @@ def translate_sequence(*, model, source_markers, target_markers, eval_indenters:
         plain = lambda im: translator.translate(im, src_ref, tgt_ref, int(sampler_steps))
         convert, gain = _in_target_space(plain, target_markers, target, redraw_taxels, gain_of)
         if from_source:
-            from stages.markers.uskin import redraw_shifted
+            from stages.markers.uskin import redraw
             source_settings = source_attrs.get("settings", {})
             read = source_shift_read(source_settings=source_settings, settings=settings, **paired)
-            convert = lambda images: redraw_shifted(plain(images), settings,
-                                                    read_source_shift(read, images, source_settings))
+            convert = lambda images: redraw(plain(images), settings,
+                                            shift=read_source_shift(read, images, source_settings))
         result = yield from _stream(source_markers, target_markers, eval_indenters, n_eval, convert, "m2m")
     result["attrs"].update(sampler_steps=int(sampler_steps), source=source, target=target)
     if gain is not None:

@@ -274,7 +274,7 @@ def _taxel_positions(pad_mm) -> np.ndarray:
 
 
 def redraw(images, settings: Mapping, supersample: int = 4, gain=(1.0, 1.0, 1.0),
-           shift_gain=None, tilt=None) -> np.ndarray:
+           shift_gain=None, tilt=None, shift=None) -> np.ndarray:
     """Images (N, H, W) 0/255 read as a taxel skin's dots (read_dots) and drawn again as
     signal_to_marker draws that skin.  settings: the skin's signal_to_marker keywords (a taxel
     markers artifact's attrs["settings"]); pad_mm, base_area, min_area, max_area, max_offset
@@ -282,7 +282,9 @@ def redraw(images, settings: Mapping, supersample: int = 4, gain=(1.0, 1.0, 1.0)
     matter here.  gain (x, y, area): the read offsets and area changes (dot_changes) are
     multiplied by it before drawing (1: as read).  shift_gain (x, y): the dots' common shift
     (their mean offset in a frame) is multiplied by it instead, the rest of each dot's offset by
-    gain (None: gain scales both, the whole offset).  tilt ((a_x, b_x), (a_y, b_y)): the area
+    gain (None: gain scales both, the whole offset).  shift (N, 2) mm: each frame's common shift
+    is set to its row instead (not with shift_gain; a 3-axis skin's: a z-only skin's dots cannot
+    move).  tilt ((a_x, b_x), (a_y, b_y)): the area
     changes get a plane across the pad, summing to 0 (the total, the normal load, is kept), that
     makes their first moment along x a_x times its read value plus b_x times the read common
     shift, and along y likewise (load_moments): how a z-only skin, whose dots cannot move, shows
@@ -305,6 +307,16 @@ def redraw(images, settings: Mapping, supersample: int = 4, gain=(1.0, 1.0, 1.0)
     g = np.asarray(gain, float)
     if g.shape != (3,) or not np.isfinite(g).all() or (g <= 0).any():
         raise ValueError(f"redraw: gain must be 3 positive numbers (x, y, area), got {gain!r}")
+    want = None
+    if shift is not None:
+        want = np.asarray(shift, float)
+        if want.shape != (len(ims), 2) or not np.isfinite(want).all():
+            raise ValueError(f"redraw: shift must be ({len(ims)}, 2) finite numbers (mm), one row per "
+                             f"image, got shape {want.shape}")
+        if shift_gain is not None:
+            raise ValueError("redraw: shift sets the common shift that shift_gain scales: give one")
+        if z_only:
+            raise ValueError("redraw: shift moves dots, and a z-only skin's dots cannot move")
     offsets, changes = dot_changes(ims, {**settings, "pad_mm": pad, "base_area": base_area})
     if tilt is not None:
         t = np.asarray(tilt, float)
@@ -312,7 +324,9 @@ def redraw(images, settings: Mapping, supersample: int = 4, gain=(1.0, 1.0, 1.0)
             raise ValueError(f"redraw: tilt must be 2x2 numbers ((a_x, b_x), (a_y, b_y)), got {tilt!r}")
         moment, shift = load_moments(offsets, changes, pad)
         changes = tilt_changes(changes, moment, t[:, 0] * moment + t[:, 1] * shift, pad)
-    if shift_gain is None:
+    if want is not None:
+        offsets = (offsets - offsets.mean(1, keepdims=True)) * g[:2] + want[:, None]
+    elif shift_gain is None:
         offsets = offsets * g[:2]
     else:
         s = np.asarray(shift_gain, float)
@@ -326,30 +340,6 @@ def redraw(images, settings: Mapping, supersample: int = 4, gain=(1.0, 1.0, 1.0)
     areas = base_area + changes * g[2]
     return _draw(centres, np.clip(areas, min_area, max_area), size=ims.shape[1:], pad_mm=pad,
                  supersample=supersample)
-
-
-def redraw_shifted(images, settings: Mapping, shift, supersample: int = 4) -> np.ndarray:
-    """Images (N, H, W) 0/255 of a 3-axis taxel skin's dots (read_dots) drawn again as redraw
-    draws them, each frame's common shift (the mean offset of its 16 dots) set to `shift`
-    (N, 2) mm and the rest of each dot's offset and its area kept (clipped as redraw clips)."""
-    ims = np.asarray(images)
-    want = np.asarray(shift, float)
-    if ims.ndim != 3:
-        raise ValueError(f"redraw_shifted: images must be (N,H,W), got {ims.shape}")
-    if want.shape != (len(ims), 2) or not np.isfinite(want).all():
-        raise ValueError(f"redraw_shifted: shift must be ({len(ims)}, 2) finite numbers (mm), one row "
-                         f"per image, got shape {want.shape}")
-    if settings.get("z_only", False):
-        raise ValueError("redraw_shifted: a z-only skin's dots cannot move")
-    pad = tuple(float(v) for v in settings.get("pad_mm", USKIN_PAD_MM))
-    base_area = float(settings.get("base_area", BASE_AREA))
-    offsets, changes = dot_changes(ims, {**settings, "pad_mm": pad, "base_area": base_area})
-    offsets = offsets - offsets.mean(1, keepdims=True) + want[:, None]
-    limit = float(settings.get("max_offset", 0.8)) * np.array([pad[0] / TAXELS[1], pad[1] / TAXELS[0]])
-    areas = np.clip(base_area + changes, float(settings.get("min_area", base_area)),
-                    float(settings.get("max_area", 16.0)))
-    return _draw(taxel_centres(pad) + np.clip(offsets, -limit, limit), areas, size=ims.shape[1:],
-                 pad_mm=pad, supersample=supersample)
 
 
 def _values(sensor, data) -> np.ndarray:

@@ -423,7 +423,7 @@ def test_translate_redraw_source_shift_reads_the_shift_off_a_taxel_source(skins,
     the source's dots (attrs redraw_source_shift), with no matched shift gain; without it, or
     from a camera skin, the shift gain as before; a value that is not a bool is refused."""
     from stages.m2m.model import load_translator
-    from stages.markers.uskin import redraw_shifted
+    from stages.markers.uskin import redraw
     monkeypatch.setattr("stages.imagemetrics.inception_features",
                         lambda images, **kw: np.zeros((len(images), 4)))
     src, z_settings, tgt, settings = _z_source(skins)
@@ -436,7 +436,7 @@ def test_translate_redraw_source_shift_reads_the_shift_off_a_taxel_source(skins,
     translator = load_translator(trained)
     plain = translator.translate(src["images"], src["reference"], tgt["reference"], 1)
     np.testing.assert_array_equal(np.concatenate([c["images"] for c in chunks]),
-                                  redraw_shifted(plain, settings, nodes.read_source_shift(read, src["images"], z_settings)))
+                                  redraw(plain, settings, shift=nodes.read_source_shift(read, src["images"], z_settings)))
     _, off = run_node(nodes.translate_sequence(**run, source_markers=src, redraw_source_shift=False))
     _, camera = run_node(nodes.translate_sequence(**run, source_markers=skins["Circle3"], redraw_source_shift=True))
     for attrs in (off["attrs"], camera["attrs"]):

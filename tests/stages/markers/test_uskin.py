@@ -7,7 +7,7 @@ import pytest
 
 from stages.markers.patterns import USKIN_PAD_MM, rasterize, uskin_pattern
 from stages.markers.uskin import (BASE_AREA, GAINS, MID_SCALE, _dots, dot_changes, dot_features, load_moments,
-                                  parse_xela, read_dots, redraw, redraw_shifted, signal_to_marker, taxel_centres, taxel_sequence, taxel_signals,
+                                  parse_xela, read_dots, redraw, signal_to_marker, taxel_centres, taxel_sequence, taxel_signals,
                                   taxel_weights)
 from tests.helpers import drain
 
@@ -247,10 +247,11 @@ def test_redraw_shift_gain_scales_only_the_dots_common_shift():
     with pytest.raises(ValueError, match=r"redraw: shift_gain must be 2 positive numbers \(x, y\), got \(1, -1\)"):
         redraw(images, kw, shift_gain=(1, -1))
 
-def test_redraw_shifted_sets_each_frames_common_shift():
-    """redraw_shifted sets a frame's common shift (the mean offset of its 16 dots) to the given
+def test_redraw_shift_sets_each_frames_common_shift():
+    """redraw's shift sets a frame's common shift (the mean offset of its 16 dots) to the given
     (N, 2) mm and keeps the rest of each dot's offset and its area; dot_features is dot_changes'
-    offsets (x, then y) and area changes in one row; a wrong shape or a z-only skin is refused."""
+    offsets (x, then y) and area changes in one row; a wrong shape, shift_gain beside it or a
+    z-only skin is refused."""
     kw = dict(size=SIZE, s_xy=20000.0, s_z=150.0, base_area=BASE_AREA, max_area=16.0, max_offset=0.8)
     rng = np.random.default_rng(6)
     raw = BASE + np.concatenate([rng.normal(0, 600, (20, 16, 2)) + rng.normal(0, 1500, (20, 1, 2)),
@@ -261,17 +262,19 @@ def test_redraw_shifted_sets_each_frames_common_shift():
     assert feats.shape == (20, 48)
     np.testing.assert_array_equal(feats, np.concatenate([off[..., 0], off[..., 1], change], 1))
     want = rng.uniform(-0.6, 0.6, (20, 2))                            # mm, within max_offset
-    got_off, got_change = dot_changes(redraw_shifted(images, kw, want), kw)
+    got_off, got_change = dot_changes(redraw(images, kw, shift=want), kw)
     np.testing.assert_allclose(got_off.mean(1), want, atol=0.05)
     rest, got_rest = off - off.mean(1, keepdims=True), got_off - got_off.mean(1, keepdims=True)
     assert np.abs(got_rest - rest).mean() < 0.05 < np.abs(rest).mean()
     assert np.abs(got_change - change).mean() < 0.15
-    np.testing.assert_array_equal(redraw_shifted(images, kw, off.mean(1)), redraw(images, kw))
-    with pytest.raises(ValueError, match=r"redraw_shifted: shift must be \(20, 2\) finite numbers \(mm\), "
+    np.testing.assert_array_equal(redraw(images, kw, shift=off.mean(1)), redraw(images, kw))
+    with pytest.raises(ValueError, match=r"redraw: shift must be \(20, 2\) finite numbers \(mm\), "
                                          r"one row per image, got shape \(2,\)"):
-        redraw_shifted(images, kw, (0.1, 0.2))
-    with pytest.raises(ValueError, match="redraw_shifted: a z-only skin's dots cannot move"):
-        redraw_shifted(images, {**kw, "z_only": True}, want)
+        redraw(images, kw, shift=(0.1, 0.2))
+    with pytest.raises(ValueError, match="redraw: shift sets the common shift that shift_gain scales: give one"):
+        redraw(images, kw, shift=want, shift_gain=(1.0, 1.0))
+    with pytest.raises(ValueError, match="redraw: shift moves dots, and a z-only skin's dots cannot move"):
+        redraw(images, {**kw, "z_only": True}, shift=want)
 
 
 def test_redraw_tilt_moves_a_drawn_shear_into_a_z_only_skins_load():
