@@ -162,10 +162,19 @@ def test_z_only_markers_ignore_xy():
     assert not np.array_equal(signal_to_marker(raw, BASE, size=SIZE), ref)
 
 
-def _random_raw(n, lateral_std, seed=0):
+def _random_raw(n, lateral_std, seed=0, common=None, area=(0, 1500)):
+    """(n, 16, 3) raw readings: each dot moved by normal(0, lateral_std) counts per axis, plus a
+    frame's common normal(0, common) where given, and pressed by uniform(area) counts, drawn in
+    that order from seed (an int, or a Generator the caller draws from further)."""
     rng = np.random.default_rng(seed)
-    return BASE + np.concatenate([rng.normal(0, lateral_std, (n, 16, 2)),
-                                  rng.uniform(0, 1500, (n, 16, 1))], -1)
+    move = rng.normal(0, lateral_std, (n, 16, 2))
+    if common is not None:
+        move = move + rng.normal(0, common, (n, 1, 2))
+    return BASE + np.concatenate([move, rng.uniform(*area, (n, 16, 1))], -1)
+
+
+# a 3-axis skin's marker settings for the redraw tests (dots up to 16 mm^2, 0.8 pitch offsets)
+REDRAW_KW = dict(size=SIZE, s_xy=20000.0, s_z=150.0, base_area=BASE_AREA, max_area=16.0, max_offset=0.8)
 
 
 @pytest.mark.parametrize("z_only", [False, True])
@@ -211,11 +220,8 @@ def test_redraw_puts_z_only_dots_back_at_their_taxels():
 def test_redraw_gain_scales_the_dots_motion_and_area_change():
     """gain (x, y, area) multiplies what redraw reads before it draws: dots read back at twice
     their x offset, half their y offset and 1.5 times their area change; gain 1 is redraw."""
-    kw = dict(size=SIZE, s_xy=20000.0, s_z=150.0, base_area=BASE_AREA, max_area=16.0, max_offset=0.8)
-    rng = np.random.default_rng(3)                          # 0.075 grid units per axis, up to
-    raw = BASE + np.concatenate([rng.normal(0, 1500, (24, 16, 2)),   # 4 mm^2 more area: no clip
-                                 rng.uniform(0, 600, (24, 16, 1))], -1)
-    images = signal_to_marker(raw, BASE, **kw)
+    kw = REDRAW_KW          # 0.075 grid units per axis, up to 4 mm^2 more area: no clip
+    images = signal_to_marker(_random_raw(24, 1500, 3, area=(0, 600)), BASE, **kw)
     off, change = dot_changes(images, kw)
     assert np.abs(off).mean() > 0.1 and np.abs(change).mean() > 1.0     # mm, mm^2
     np.testing.assert_array_equal(redraw(images, kw, gain=(1, 1, 1)), redraw(images, kw))
@@ -231,11 +237,8 @@ def test_redraw_shift_gain_scales_only_the_dots_common_shift():
     """shift_gain (x, y) multiplies the mean offset of a frame's 16 dots, gain the rest of each
     dot's offset: read back, the common shift is 2x in x and 0.5x in y, the rest and the areas
     are as they were."""
-    kw = dict(size=SIZE, s_xy=20000.0, s_z=150.0, base_area=BASE_AREA, max_area=16.0, max_offset=0.8)
-    rng = np.random.default_rng(4)
-    raw = BASE + np.concatenate([rng.normal(0, 1000, (24, 16, 2)) + rng.normal(0, 1000, (24, 1, 2)),
-                                 rng.uniform(0, 600, (24, 16, 1))], -1)
-    images = signal_to_marker(raw, BASE, **kw)
+    kw = REDRAW_KW
+    images = signal_to_marker(_random_raw(24, 1000, 4, common=1000, area=(0, 600)), BASE, **kw)
     off, change = dot_changes(images, kw)
     got_off, got_change = dot_changes(redraw(images, kw, shift_gain=(2.0, 0.5)), kw)
     shift, got_shift = off.mean(1), got_off.mean(1)
@@ -247,16 +250,14 @@ def test_redraw_shift_gain_scales_only_the_dots_common_shift():
     with pytest.raises(ValueError, match=r"redraw: shift_gain must be 2 positive numbers \(x, y\), got \(1, -1\)"):
         redraw(images, kw, shift_gain=(1, -1))
 
+
 def test_redraw_shift_sets_each_frames_common_shift():
     """redraw's shift sets a frame's common shift (the mean offset of its 16 dots) to the given
     (N, 2) mm and keeps the rest of each dot's offset and its area; dot_features is dot_changes'
     offsets (x, then y) and area changes in one row; a wrong shape, shift_gain beside it or a
     z-only skin is refused."""
-    kw = dict(size=SIZE, s_xy=20000.0, s_z=150.0, base_area=BASE_AREA, max_area=16.0, max_offset=0.8)
-    rng = np.random.default_rng(6)
-    raw = BASE + np.concatenate([rng.normal(0, 600, (20, 16, 2)) + rng.normal(0, 1500, (20, 1, 2)),
-                                 rng.uniform(0, 600, (20, 16, 1))], -1)
-    images = signal_to_marker(raw, BASE, **kw)
+    kw, rng = REDRAW_KW, np.random.default_rng(6)
+    images = signal_to_marker(_random_raw(20, 600, rng, common=1500, area=(0, 600)), BASE, **kw)
     off, change = dot_changes(images, kw)
     feats = dot_features(images, kw)
     assert feats.shape == (20, 48)
@@ -282,12 +283,8 @@ def test_redraw_tilt_moves_a_drawn_shear_into_a_z_only_skins_load():
     the first moment of their area changes a times its read value plus b times the dots' read
     common shift (load_moments), the total area kept and the dots at their taxels; without it
     the moment ignores the shift."""
-    kw = dict(size=SIZE, s_xy=20000.0, s_z=150.0, base_area=BASE_AREA, max_area=16.0, max_offset=0.8,
-              min_area=0.5)
-    rng = np.random.default_rng(5)
-    raw = BASE + np.concatenate([rng.normal(0, 300, (24, 16, 2)) + rng.normal(0, 2000, (24, 1, 2)),
-                                 rng.uniform(100, 500, (24, 16, 1))], -1)
-    images = signal_to_marker(raw, BASE, **kw)
+    kw = {**REDRAW_KW, "min_area": 0.5}
+    images = signal_to_marker(_random_raw(24, 300, 5, common=2000, area=(100, 500)), BASE, **kw)
     moment, shift = load_moments(*dot_changes(images, kw), USKIN_PAD_MM)
     assert np.abs(shift).mean() > 0.3                                   # mm: the dots moved
     z_kw, tilt = {**kw, "z_only": True}, ((0.5, 30.0), (0.5, -30.0))
