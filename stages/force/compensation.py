@@ -47,9 +47,12 @@ TacTip's shear at R2 0.97/0.97 (Fx/Fy, unseen indenters; "axes" 0.61/0.63) from 
 of the source's deformation, and the label it needs is the force under the deformation it
 shows, which "axes" gives (every translated frame labelled by the contact model: GelSight ->
 TacTip R2 0.78/0.73/0.85 -> 0.77/0.56/0.80).  Where the two press as deep the target's frames
-carry the "axes" labels; where the target presses shallower (TacTip -> a flat pad) its pad
-slides partway under a contact that sticks on the source, which neither set labels well
-(the contact model R2 0.69/0.71, "axes" 0.37/0.32), so they carry none and are not read.
+carry the "axes" labels.  Where the target presses shallower (TacTip -> a flat pad) its pad
+slides under much of a contact that sticks on the source (|F_xy| / |F_z| at its friction on a
+quarter of the paired frames), and what slid out under the shear leg is sheared back when the
+indenter returns, which the per-frame law reads as no shear (R2 0.76, "axes" 0.32-0.46): the
+same law walked through each contact with its slip remembered (:func:`slip_shear`) labels
+those frames at R2 0.87-0.88 (TacTip to GelSight and to the uSkin, training indenters).
 
 Depth: each curve is a function of its own sensor's normalised depth (depth / the sensor's
 calibration d_max).  A location-paired frame presses every sensor to the same fraction of its
@@ -282,6 +285,45 @@ def contact_shear(shift, area, normal, *, stiffness: float, punch_area: float,
         cap = float(mu) * np.abs(normal)
         shear *= np.where(size > cap, cap / np.maximum(size, 1e-300), 1.0)[:, None]
     return shear
+
+
+def slip_shear(shift, area, normal, contact_id, *, stiffness: float, punch_area: float,
+               mu: float) -> np.ndarray:
+    """(N,2) the target's shear force at each frame of whole contacts (rows in time order, each
+    contact's frames contiguous, contact_id (N,)) when its contact slides and remembers where it
+    slid: from rest at a contact's first frame, each frame adds the sticking stiffness
+    (contact_shear's, stiffness * sqrt(area / punch_area)) times the shift's step, and a force
+    beyond mu * |normal| is scaled back onto that limit (Coulomb; the slip it stands for is kept).
+    A pad that slid out under the shear leg is sheared the other way when the indenter comes
+    back: at the start point again it carries -(what it slid) times the stiffness, where
+    contact_shear, which reads each frame alone, gives 0.  The twin's solver carries each pad
+    point's slip from frame to frame (stages.sim.contact.solve_sequence), which this follows
+    with one slip for the whole contact.  shift (N,2) mm, area (N,) mm^2, normal (N,) N."""
+    shift = np.asarray(shift, float)
+    area = np.asarray(area, float)
+    normal = np.asarray(normal, float)
+    contact_id = np.asarray(contact_id)
+    if (shift.ndim != 2 or shift.shape[1] != 2 or area.shape != shift.shape[:1] or normal.shape != area.shape
+            or contact_id.shape != area.shape):
+        raise ValueError(f"slip_shear: shift {shift.shape}, area {area.shape}, normal {normal.shape} and "
+                         f"contact_id {contact_id.shape} must be (N,2), (N,), (N,), (N,)")
+    if not (np.isfinite(mu) and mu > 0):
+        raise ValueError(f"slip_shear: friction coefficient mu must be positive, got {mu}")
+    starts = np.r_[True, contact_id[1:] != contact_id[:-1]] if contact_id.size else np.zeros(0, bool)
+    if np.unique(contact_id).size != int(starts.sum()):
+        raise ValueError("slip_shear: a contact's frames are not contiguous")
+    step = np.where(starts[:, None], shift, np.diff(shift, axis=0, prepend=shift[:1]))
+    stick = contact_shear(step, area, normal, stiffness=stiffness, punch_area=punch_area)
+    cap = float(mu) * np.abs(normal)
+    out = np.zeros_like(shift)
+    force = np.zeros(2)
+    for i in range(len(shift)):
+        force = stick[i] if starts[i] else force + stick[i]    # a contact starts from rest at shift 0
+        size = float(np.hypot(force[0], force[1]))
+        if size > cap[i]:
+            force = force * (cap[i] / size)
+        out[i] = force
+    return out
 
 
 def compensate(force, normalised_depth, loading, source: Curves, target: Curves,

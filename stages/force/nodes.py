@@ -214,7 +214,8 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     retrained (attrs compensation_identity true).  `compensation` is the mode of
     stages.force.compensation: "normal" (the paper's), "axes" (shear gains too) or "contact"
     ("axes" labels; the target's own frames' shear, which `readout` reads, from its sticking
-    contact where it presses deeper: contact_labels, with the `indenters` meshes).
+    contact where it presses deeper, its sliding one where shallower: contact_labels, with the
+    `indenters` meshes).
     `readout` ("none", "shear"): after training (and the alignment), genforce_comp's shear output
     is scaled by shear_readout's gains: how it reads the target's own frames on the
     `align_pairs` location-paired frames against the shear they carry (_readout_labels); stored
@@ -520,15 +521,23 @@ def contact_labels(translated: Mapping, target_calibration: Mapping, comp: np.nd
                      CONTACT_DEPTH_TOLERANCE of its depth: its sticking-contact shear
                      (compensation.contact_shear; TacTip from the flat pads, R2 0.97);
       "compensated"  the two press as deep: `comp`'s shear (the source's, compensated);
-      "none"         the target presses shallower: None (its pad slides partway under a
-                     contact that sticks on the source, which neither labels well: 0.69).
+      "slip"         the target presses shallower: its pad slides under a contact that sticks
+                     on the source, and what it slid out under the shear leg it is sheared
+                     back by on the way home (compensation.slip_shear, walked over the whole
+                     contacts of `rows`; TacTip to the flat pads R2 0.87-0.88 on the training
+                     indenters' paired frames, the same per-frame law 0.76);
+      "none"         the target presses shallower and its calibration records no friction
+                     mu: None.
 
     The target's depth at a frame is k times the source's normalised depth times the target
     calibration's max_depth_mm, its contact the indenter's overlap with the target's pad there
     (contact_areas, the `indenters` meshes), its stiffness the calibration's shear leg
     (shear_stiffness, at the calibration indenter's contact), capped at the calibration's
-    friction mu (none recorded: no cap) times the compensated |Fz| (`comp`'s)."""
-    from stages.force.compensation import contact_shear, shear_stiffness
+    friction mu (none recorded: no cap) times the compensated |Fz| (`comp`'s).  The deeper
+    target's contact sticks over most of its face (slip only at its rim), which one slip for
+    the whole contact overstates (slip_shear there: R2 0.96 -> 0.94 from GelSight), so it is
+    read frame by frame."""
+    from stages.force.compensation import contact_shear, shear_stiffness, slip_shear
     attrs = attrs_of(target_calibration)
     if "max_depth_mm" not in attrs:
         raise ValueError(f"{name}: compensation 'contact' needs the target calibration's attrs "
@@ -538,9 +547,11 @@ def contact_labels(translated: Mapping, target_calibration: Mapping, comp: np.nd
     target_deepest = float(k * np.max(depth) * float(attrs["max_depth_mm"]))
     info = {"source_depth_mm": round(source_deepest, 6), "target_depth_mm": round(target_deepest, 6)}
     rows = np.asarray(rows, int)
-    if source_deepest > (1.0 + CONTACT_DEPTH_TOLERANCE) * target_deepest:
+    shallower = source_deepest > (1.0 + CONTACT_DEPTH_TOLERANCE) * target_deepest
+    mu = attrs.get("mu")
+    if shallower and mu is None:
         return None, {"labels": "none", **info}
-    if target_deepest <= (1.0 + CONTACT_DEPTH_TOLERANCE) * source_deepest:
+    if not shallower and target_deepest <= (1.0 + CONTACT_DEPTH_TOLERANCE) * source_deepest:
         return np.asarray(comp, np.float32)[rows, :2], {"labels": "compensated", **info}
     missing = [key for key in ("spacing_mm", "pad_mm", "curvature_radius_mm", "indenter") if key not in attrs]
     if missing:
@@ -551,16 +562,26 @@ def contact_labels(translated: Mapping, target_calibration: Mapping, comp: np.nd
     cal_depth = np.asarray(target_calibration["depth"], float)
     punch = contact_areas(indenters, [attrs["indenter"]], [0], [0], [(0.0, 0.0)],
                           [float(cal_depth.max())], spec)[0]
-    shift = np.asarray(translated["shift"], float)[rows]
-    touchdown = np.asarray(translated["position"], float)[rows, :2] - shift
-    area = contact_areas(indenters, translated["indenters"], np.asarray(translated["indenter_id"])[rows],
-                         np.asarray(translated["contact_id"])[rows], touchdown,
-                         k * depth[rows] * float(attrs["max_depth_mm"]), spec)
+    read = rows
+    if shallower:                          # whole contacts: the slip is carried from their start
+        runs = contact_runs(translated)
+        starts = np.array([a for a, _ in runs])
+        which = np.unique(np.searchsorted(starts, rows, side="right") - 1)
+        read = np.concatenate([np.arange(*runs[i]) for i in which])
+    shift = np.asarray(translated["shift"], float)[read]
+    touchdown = np.asarray(translated["position"], float)[read, :2] - shift
+    contact_id = np.asarray(translated["contact_id"])[read]
+    area = contact_areas(indenters, translated["indenters"], np.asarray(translated["indenter_id"])[read],
+                         contact_id, touchdown, k * depth[read] * float(attrs["max_depth_mm"]), spec)
     stiffness = shear_stiffness(target_calibration)
-    mu = attrs.get("mu")
-    shear = contact_shear(shift, area, comp[rows, 2], stiffness=stiffness, punch_area=punch,
-                          mu=None if mu is None else float(mu))
-    info.update(labels="contact", stiffness_n_per_mm=round(stiffness, 6),
+    normal = np.asarray(comp)[read, 2]
+    if shallower:
+        shear = slip_shear(shift, area, normal, contact_id, stiffness=stiffness, punch_area=punch,
+                           mu=float(mu))[np.searchsorted(read, rows)]
+    else:
+        shear = contact_shear(shift, area, normal, stiffness=stiffness, punch_area=punch,
+                              mu=None if mu is None else float(mu))
+    info.update(labels="slip" if shallower else "contact", stiffness_n_per_mm=round(stiffness, 6),
                 punch_area_mm2=round(float(punch), 6), mu=None if mu is None else float(mu))
     return shear.astype(np.float32), info
 

@@ -987,6 +987,38 @@ def test_shear_stiffness_and_contact_shear():
         contact_shear(shift[:, :1], area, normal, stiffness=0.3, punch_area=12.0)
 
 
+def test_slip_shear_carries_the_slip_through_each_contact():
+    """slip_shear walks each contact from rest: sticking steps of stiffness * sqrt(A / A_p) times
+    the shift's step, the force held to mu |Fz| where it would exceed it, and the slip kept, so a
+    pad that slid out is sheared back when the indenter returns (contact_shear reads 0 there)."""
+    from stages.force.compensation import contact_shear, slip_shear
+    # one contact out 1.5 mm along x and back, k = 0.4 N/mm (area = the punch's), cap 0.3 N
+    shift = np.array([[0.0, 0.0], [0.5, 0.0], [1.0, 0.0], [1.5, 0.0], [1.0, 0.0], [0.5, 0.0], [0.0, 0.0]])
+    area, normal = np.full(7, 12.0), np.full(7, -0.6)
+    out = slip_shear(shift, area, normal, np.zeros(7, int), stiffness=0.4, punch_area=12.0, mu=0.5)
+    # 0, 0.2, 0.3 (slides: 0.4 wanted), 0.3 (slides on), then back 0.1, -0.1, -0.3 (slides back)
+    np.testing.assert_allclose(out[:, 0], [0.0, 0.2, 0.3, 0.3, 0.1, -0.1, -0.3], atol=1e-12)
+    assert np.all(out[:, 1] == 0)
+    frame = contact_shear(shift, area, normal, stiffness=0.4, punch_area=12.0, mu=0.5)
+    np.testing.assert_allclose(frame[:, 0], [0.0, 0.2, 0.3, 0.3, 0.3, 0.2, 0.0], atol=1e-12)
+    # a second contact starts from rest: the same walk, along -y, at 4x the area (2x stiffer)
+    # and a 1 N cap: 0, -0.4, -0.8, -1 (slides), -0.6, -0.2, +0.2
+    two = slip_shear(np.r_[shift, -shift[:, ::-1]], np.r_[area, 4 * area], np.r_[normal, np.full(7, -2.0)],
+                     np.repeat([3, 8], 7), stiffness=0.4, punch_area=12.0, mu=0.5)
+    np.testing.assert_array_equal(two[:7], out)
+    np.testing.assert_allclose(two[7:, 1], [0.0, -0.4, -0.8, -1.0, -0.6, -0.2, 0.2], atol=1e-12)
+    # a diagonal slide keeps its direction on the friction circle
+    diag = slip_shear(np.array([[0.0, 0.0], [2.0, 2.0]]), np.full(2, 12.0), np.full(2, -1.0), np.zeros(2, int),
+                      stiffness=1.0, punch_area=12.0, mu=0.5)
+    np.testing.assert_allclose(diag[1], [0.5 / np.sqrt(2)] * 2)
+    with pytest.raises(ValueError, match="slip_shear: a contact's frames are not contiguous"):
+        slip_shear(shift[:3], area[:3], normal[:3], np.array([0, 1, 0]), stiffness=0.4, punch_area=12.0, mu=0.5)
+    with pytest.raises(ValueError, match="slip_shear: friction coefficient mu must be positive, got 0.0"):
+        slip_shear(shift, area, normal, np.zeros(7, int), stiffness=0.4, punch_area=12.0, mu=0.0)
+    with pytest.raises(ValueError, match=r"contact_id \(6,\) must be \(N,2\), \(N,\), \(N,\), \(N,\)"):
+        slip_shear(shift, area, normal, np.zeros(6, int), stiffness=0.4, punch_area=12.0, mu=0.5)
+
+
 def test_contact_areas_match_the_indenters_geometry():
     """The rigid overlap with a flat pad: a 4 mm flat punch touches its whole face at any depth,
     a sphere of radius 4 mm the disc of radius sqrt(2 R d - d^2)."""
@@ -1021,8 +1053,9 @@ def _contact_translated(depth_mm):
 def test_contact_labels_by_which_collection_presses_deeper():
     """Mode "contact" gives the target's sticking-contact shear at the chosen frames where its
     collection presses deeper than the source's (source 1 mm, target 3 mm), the compensated
-    shear where it presses as deep (within 10%), and none where it presses shallower."""
-    from stages.force.compensation import contact_shear
+    shear where it presses as deep (within 10%), and where it presses shallower its sliding
+    contact's (slip_shear; none without a friction coefficient)."""
+    from stages.force.compensation import contact_shear, slip_shear
     from stages.force.nodes import _pad_spec, contact_areas, contact_labels
     meshes = _mesh_art(["sphere", "calib_punch"])
     tgt = _stick_calibration(0.2, depth_mm=3.0, mu=0.9)
@@ -1050,7 +1083,19 @@ def test_contact_labels_by_which_collection_presses_deeper():
                                     indenters=None, rows=rows, name="t")
         np.testing.assert_array_equal(same, comp[rows, :2])
         assert info == {"labels": "compensated", "source_depth_mm": 1.0, "target_depth_mm": depth_mm}
-    none, info = contact_labels(translated, _stick_calibration(0.2, depth_mm=0.5), comp, 1.0,
+    # shallower: the slip law, walked over the whole contacts the rows fall in (both here)
+    shallow = _stick_calibration(0.2, depth_mm=0.5, mu=0.05)
+    slip, info = contact_labels(translated, shallow, comp, 1.0, indenters=meshes, rows=rows, name="t")
+    assert info["labels"] == "slip" and info["target_depth_mm"] == 0.5 and info["mu"] == 0.05
+    whole = contact_areas(meshes, translated["indenters"], translated["indenter_id"], translated["contact_id"],
+                          np.tile([1.0, -1.0], (12, 1)), translated["normalised_depth"] * 0.5, spec)
+    walked = slip_shear(translated["shift"], whole, comp[:, 2], translated["contact_id"], stiffness=0.2,
+                        punch_area=info["punch_area_mm2"], mu=0.05)
+    np.testing.assert_allclose(slip, walked[rows], rtol=1e-6)
+    # the punch (|Fz| 3 N pressed): 0.1 N at 0.5 mm, at 1 mm the 0.2 N it wants held to 0.05 x 3 N
+    # = 0.15 N (it slid 0.25 mm), and back at the start, released to |Fz| 1.5 N, -0.05 N
+    assert slip[3, 1] == pytest.approx(0.15) and slip[4, 1] == pytest.approx(-0.05, abs=0.01)
+    none, info = contact_labels(translated, dict(shallow, attrs={**shallow["attrs"], "mu": None}), comp, 1.0,
                                 indenters=None, rows=rows, name="t")
     assert none is None and info == {"labels": "none", "source_depth_mm": 1.0, "target_depth_mm": 0.5}
     # k scales the target's depth: 1 mm calibration, collection twice as deep
@@ -1092,8 +1137,9 @@ def test_fit_transfer_shear_readout_scales_the_shear_it_reads(skins, tiny_config
     """readout "shear": genforce_comp is readout "none"'s model with its shear range scaled by
     the read-out gains on the paired frames (stored, with the shear they were fitted to: in
     mode "contact", where the target presses deeper, its contact shear), which a seed model of
-    the same seed reproduces bit for bit; where the target presses shallower nothing is read."""
-    from stages.force.nodes import _paired_rows, shear_readout
+    the same seed reproduces bit for bit; where the target presses shallower, its sliding
+    contact's shear (slip_shear), and nothing without a friction coefficient."""
+    from stages.force.nodes import _paired_rows, contact_labels, recorded_compensation, shear_readout
     n = len(skins["A"]["force"])
     shift = 0.5 * np.asarray(skins["A"]["force"], float)[:, :2]        # mm: the synthetic shear's cause
     nd = np.asarray(skins["A"]["normalised_depth"], float)
@@ -1134,11 +1180,22 @@ def test_fit_transfer_shear_readout_scales_the_shear_it_reads(skins, tiny_config
         fit_transfer_seed(transfer={**stored, "readout_frame": frames + 1}, translated=translated, seed=0,
                           **seed_kw)
     shallower = _stick_calibration(0.2, depth_mm=0.5, mu=0.9)
-    none = fit_transfer(target_calibration=shallower, compensation="contact", readout="shear", **kw)
+    slid = fit_transfer(target_calibration=shallower, compensation="contact", readout="shear", **kw)
+    info = slid["attrs"]["shear_readout"]
+    assert info["labels"] == "slip" and info["pairs"] == 12 and info["target_depth_mm"] == pytest.approx(0.5 * nd.max())
+    comp = recorded_compensation(translated, slid["attrs"])
+    want, _ = contact_labels(translated, shallower, comp, 1.0, indenters=kw["indenters"], rows=rows[0], name="t")
+    np.testing.assert_array_equal(slid["readout_shear"], want)
+    plain = fit_transfer(target_calibration=shallower, compensation="contact", readout="none", **kw)
+    read = shear_readout(load_model({"genforce_comp": plain["genforce_comp"], "attrs": plain["attrs"]},
+                                    "genforce_comp"), target, rows[1], want)
+    assert info["gain"] == pytest.approx(list(read)) and read != (1.0, 1.0)
+    # no friction coefficient recorded: nothing is read
+    frictionless = dict(shallower, attrs={**shallower["attrs"], "mu": None})
+    none = fit_transfer(target_calibration=frictionless, compensation="contact", readout="shear", **kw)
     assert none["attrs"]["shear_readout"] == {"labels": "none", "source_depth_mm": pytest.approx(nd.max()),
                                               "target_depth_mm": pytest.approx(0.5 * nd.max()), "pairs": 12}
     assert "readout_shear" not in none
-    plain = fit_transfer(target_calibration=shallower, compensation="contact", readout="none", **kw)
     for k, v in plain["genforce_comp"].items():
         np.testing.assert_array_equal(none["genforce_comp"][k], v)
     # as deep: the compensated labels' shear; mode "axes": those, whatever the depths
