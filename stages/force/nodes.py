@@ -524,7 +524,7 @@ def contact_labels(translated: Mapping, target_calibration: Mapping, comp: np.nd
       "slip"         the target presses shallower: its pad slides under a contact that sticks
                      on the source, and what it slid out under the shear leg it is sheared
                      back by on the way home (compensation.slip_shear, walked over the whole
-                     contacts of `rows`; TacTip to the flat pads R2 0.87-0.88 on the training
+                     contacts of `rows`; TacTip to the flat pads R2 0.86-0.88 on the training
                      indenters' paired frames, the same per-frame law 0.76);
       "none"         the target presses shallower and its calibration records no friction
                      mu: None.
