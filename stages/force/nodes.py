@@ -86,6 +86,14 @@ def contact_runs(art, indenters: Sequence[str] | None = None) -> list[tuple[int,
     return [(a, b) for a, b in runs if names[a] in keep]
 
 
+def whole_contacts(art, rows) -> np.ndarray:
+    """The rows, in order, of every whole contact of `art` that one of `rows` falls in."""
+    runs = contact_runs(art)
+    starts = np.array([a for a, _ in runs])
+    which = np.unique(np.searchsorted(starts, np.asarray(rows, int), side="right") - 1)
+    return np.concatenate([np.arange(*runs[i]) for i in which])
+
+
 def _read_runs(art, key: str, runs) -> list[np.ndarray]:
     return [np.asarray(art[key][a:b]) for a, b in runs]
 
@@ -562,12 +570,7 @@ def contact_labels(translated: Mapping, target_calibration: Mapping, comp: np.nd
     cal_depth = np.asarray(target_calibration["depth"], float)
     punch = contact_areas(indenters, [attrs["indenter"]], [0], [0], [(0.0, 0.0)],
                           [float(cal_depth.max())], spec)[0]
-    read = rows
-    if shallower:                          # whole contacts: the slip is carried from their start
-        runs = contact_runs(translated)
-        starts = np.array([a for a, _ in runs])
-        which = np.unique(np.searchsorted(starts, rows, side="right") - 1)
-        read = np.concatenate([np.arange(*runs[i]) for i in which])
+    read = whole_contacts(translated, rows) if shallower else rows   # the slip runs from their start
     shift = np.asarray(translated["shift"], float)[read]
     touchdown = np.asarray(translated["position"], float)[read, :2] - shift
     contact_id = np.asarray(translated["contact_id"])[read]
@@ -590,10 +593,7 @@ def _target_predictions(model, target_markers: Mapping, rows: np.ndarray) -> np.
     """(K,3) the model's forces at the target's own frames `rows`, each read in its whole contact
     (the GRU's state from the contact's first frame, as the studies and a control loop read)."""
     from stages.force.model import predict_contacts
-    runs = contact_runs(target_markers)
-    starts = np.array([a for a, _ in runs])
-    which = np.unique(np.searchsorted(starts, np.asarray(rows, int), side="right") - 1)
-    read = np.concatenate([np.arange(*runs[i]) for i in which])
+    read = whole_contacts(target_markers, rows)
     cid = np.asarray(target_markers["contact_id"])
     pred = predict_contacts(model, np.asarray(target_markers["images"][read.tolist()]), cid[read],
                             np.asarray(target_markers["reference"]))
