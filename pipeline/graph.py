@@ -36,6 +36,7 @@ class Node:
     grid: dict[str, Any] = field(default_factory=dict)   # var -> params key or literal list
     version: str | None = None       # overrides the code fingerprint when set
     source: bool = False             # captured data: never re-run automatically
+    on_demand: bool = False          # left out of the default targets: runs when named
     description: str = ""
 
     @property
@@ -101,7 +102,8 @@ class Graph:
 
     def node(self, name: str, func: str, *, inputs: dict[str, str] | None = None,
              params: dict[str, str] | None = None, grid: dict[str, Any] | None = None,
-             version: str | None = None, source: bool = False, description: str = "") -> Node:
+             version: str | None = None, source: bool = False, on_demand: bool = False,
+             description: str = "") -> Node:
         if not _NAME.match(name):
             raise PipelineError(f"invalid node name {name!r}")
         if name in self.nodes:
@@ -109,7 +111,7 @@ class Graph:
         if ":" not in func:
             raise PipelineError(f"node '{name}': func must be 'module:function', got {func!r}")
         n = Node(name, func, dict(inputs or {}), dict(params or {}), dict(grid or {}),
-                 version, source, description)
+                 version, source, on_demand, description)
         grid_vars = n.grid_vars
         for arg in [*n.inputs, *n.params, *grid_vars]:
             if not _NAME.match(arg):
@@ -269,9 +271,10 @@ class Graph:
     def select(self, instances: dict[str, Instance], targets: list[str] | None) -> list[str]:
         """Instance names named by targets (node names, instances or partial selectors)."""
         targets = list(targets or self.default_targets or [])
-        if not targets:  # default: every sink but source nodes (capture runs only when named)
+        if not targets:  # default: every sink but source and on-demand nodes (they run when named)
             used = {u for i in instances.values() for u in i.upstream()}
-            return [n for n, i in instances.items() if n not in used and not i.node.source]
+            return [n for n, i in instances.items()
+                    if n not in used and not i.node.source and not i.node.on_demand]
         chosen: list[str] = []
         for t in targets:
             node, sel = parse_selector(t)

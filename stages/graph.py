@@ -22,8 +22,7 @@ GRAPH.node("collection_trajectory", "stages.sim.trajectory:collection_trajectory
            description="the real-collection protocol: 5 points, depth steps, 8 shear directions")
 GRAPH.node("calibration_trajectory", "stages.sim.trajectory:calibration_trajectory",
            params={k: f"calibration_trajectory.{k}" for k in (
-               "max_depth_mm", "n_steps", "repetitions", "indenter", "rate_hz", "shear_mm",
-               "shear_steps")},
+               "max_depth_mm", "n_steps", "repetitions", "indenter", "rate_hz")},
            description="3 indentations to d_max and back, then a shear leg, for material compensation")
 
 # -- marker representation ----------------------------------------------------------------
@@ -95,28 +94,23 @@ GRAPH.node("ingest", "stages.capture.ingest:ingest",
 # -- M2M translation: one generator for every pair, a training-free baseline, image metrics ----
 GRAPH.node("m2m_sim", "stages.m2m.nodes:pretrain",
            inputs={"markers": "markers[skin=@m2m.pretrain.skins]"},
-           params={"skins": "m2m.pretrain.skins", "train_indenters": "splits.train_indenters",
+           params={"skins": "m2m.pretrain.skins", "train_indenters": "splits.m2m_indenters",
                    "size": "render.size", "steps": "m2m.pretrain.steps",
                    "batch_size": "m2m.pretrain.batch_size", "lr": "m2m.pretrain.lr",
                    "seed": "m2m.pretrain.seed", "width": "m2m.pretrain.width",
                    "timesteps": "m2m.pretrain.timesteps",
-                   "change_weight": "m2m.pretrain.change_weight",
                    "change_share": "m2m.pretrain.change_share",
-                   "source_gate": "m2m.pretrain.source_gate",
-                   "identity_share": "m2m.pretrain.identity_share"},
+                   "source_gate": "m2m.pretrain.source_gate"},
            description="M2M generator trained from scratch on the 12 simulation patterns")
 GRAPH.node("m2m", "stages.m2m.nodes:finetune",
            inputs={"base": "m2m_sim", "markers": "markers[skin=@m2m.finetune.skins]"},
-           params={"skins": "m2m.finetune.skins", "train_indenters": "splits.train_indenters",
+           params={"skins": "m2m.finetune.skins", "train_indenters": "splits.m2m_indenters",
                    "pairs_per_skin": "m2m.finetune.pairs_per_skin", "steps": "m2m.finetune.steps",
                    "batch_size": "m2m.finetune.batch_size", "lr": "m2m.finetune.lr",
-                   "seed": "m2m.finetune.seed", "change_weight": "m2m.finetune.change_weight",
-                   "change_share": "m2m.finetune.change_share",
-                   "target_balance": "m2m.finetune.target_balance",
-                   "change_per_example": "m2m.finetune.change_per_example",
-                   "identity_share": "m2m.finetune.identity_share"},
+                   "seed": "m2m.finetune.seed", "change_share": "m2m.finetune.change_share"},
            description="M2M fine-tuned to the twin sensors with a few location-paired frames each")
-_EVAL = {"eval_indenters": "splits.test_indenters", "n_eval": "m2m.n_eval"}
+_EVAL = {"eval_indenters": "splits.test_indenters", "val_indenters": "splits.val_indenters",
+         "n_eval": "m2m.n_eval"}
 GRAPH.node("translate_sim", "stages.m2m.nodes:translate_sequence",
            inputs={"model": "m2m_sim", "source_markers": "markers[skin={source}]",
                    "target_markers": "markers[skin={target}]"},
@@ -128,20 +122,19 @@ _TRANSFER_PAIRS = ("homo.groups.pairs + material.groups.hard_to_soft + material.
 GRAPH.node("translate", "stages.m2m.nodes:translate_sequence",
            inputs={"model": "m2m", "source_markers": "markers[skin={source}]",
                    "target_markers": "markers[skin={target}]"},
-           params={**_EVAL, "sampler_steps": "m2m.sampler_steps", "redraw_taxels": "m2m.redraw_taxels",
-                   "redraw_match": "m2m.redraw_match", "redraw_source_shift": "m2m.redraw_source_shift"},
+           params={**_EVAL, "sampler_steps": "m2m.sampler_steps"},
            grid={"source,target": _TRANSFER_PAIRS},
            description="a calibrated sensor's sequence in an uncalibrated sensor's style")
 GRAPH.node("flow_warp", "stages.m2m.nodes:flow_warp_sequence",
            inputs={"source_markers": "markers[skin={source}]",
                    "target_markers": "markers[skin={target}]"},
-           params={**_EVAL, "redraw_taxels": "m2m.redraw_taxels"},
+           params=_EVAL,
            grid={"source,target": "sim_m2m.pairs + " + _TRANSFER_PAIRS},
            description="training-free baseline: the source's marker motion warps the target's reference")
 GRAPH.node("features", "stages.m2m.nodes:image_features",
            inputs={"markers": "markers[skin={skin}]"}, params=_EVAL,
            grid={"skin": "render.skins + taxels.skins"},
-           description="InceptionV3 features of a skin's evaluation frames (FID/KID)")
+           description="InceptionV3 features of a skin's scored frames (FID/KID)")
 # the simulation patterns' features and flow-warps only, so that the study needs no twin
 _SIMS = "@m2m.pretrain.skins"
 GRAPH.node("sim_m2m", "stages.m2m.nodes:image_study",
@@ -153,80 +146,61 @@ GRAPH.node("sim_m2m", "stages.m2m.nodes:image_study",
 
 # -- force: regressors, transfer with material compensation, the studies ----------------------
 _FIT = {"config": "force.config", "steps": "force.steps", "batch_size": "force.batch_size",
-        "lr": "force.lr", "seed": "force.seed"}
-# the transferred models trained with (splice) and their batch norm aligned on as many location-paired
-# target frames as M2M's fine-tune reads
-_ALIGN = {"align": "force.align", "align_pairs": "m2m.finetune.pairs_per_skin", "splice": "force.splice"}
-GRAPH.node("own", "stages.force.nodes:fit_own",
+        "lr": "force.lr", "finetune_steps": "force.finetune_steps",
+        "train_indenters": "splits.train_indenters"}
+GRAPH.node("own", "stages.force.fit:fit_own",
            inputs={"markers": "markers[skin={skin}]"},
-           params={**_FIT, "train_indenters": "splits.train_indenters", "linear_fz": "force.linear_fz",
-                   "skin_spec": "skins.{skin}"},
+           params={**{k: v for k, v in _FIT.items() if k != "finetune_steps"}, "seed": "force.seed"},
            grid={"skin": "force.skins"},
            description="force regressor on a skin's own labels: source-only model and oracle")
-GRAPH.node("transfer", "stages.force.nodes:fit_transfer",
+GRAPH.node("transfer", "stages.force.fit:fit_transfer",
            inputs={"translated": "translate[source={source},target={target}]",
                    "source_calibration": "calibrate[sensor={source_spec[sensor]}]",
                    "target_calibration": "calibrate[sensor={target_spec[sensor]}]",
-                   "target_markers": "markers[skin={target}]", "indenters": "indenters",
+                   "target_markers": "markers[skin={target}]",
                    "captured_calibrations": "capture_calibration[*]"},
-           params={**_FIT, "finetune_steps": "force.finetune_steps", "compensation": "force.compensation",
-                   "compensation_depth": "force.compensation_depth", "readout": "force.readout", **_ALIGN,
-                   "linear_fz": "force.linear_fz", "fz_readout": "force.fz_readout",
-                   "train_indenters": "splits.train_indenters",
+           params={**_FIT, "seed": "force.seed", "additions": "plus.additions",
+                   "pairs": "m2m.finetune.pairs_per_skin",
                    "source_spec": "skins.{source}", "target_spec": "skins.{target}"},
            grid={"source,target": _TRANSFER_PAIRS},
-           description="GenForce: regressors on translated images with source labels, raw and compensated")
+           description="GenForce: regressors on translated images with source labels, raw (genforce), "
+                       "compensated (genforce_comp) and with our additions (genforce_plus)")
 _STUDY = {"features": "features[*]", "translated": "translate[*]", "warped": "flow_warp[*]",
           "own": "own[*]", "transfer": "transfer[*]", "markers": "markers[*]"}
-_STUDY_PARAMS = {"test_indenters": "splits.test_indenters", "kid_subset": "m2m.kid_subset",
-                 "trace_frames": "force.trace_frames", "seen_indenters": "splits.train_indenters"}
+_STUDY_PARAMS = {"test_indenters": "splits.test_indenters", "val_indenters": "splits.val_indenters",
+                 "kid_subset": "m2m.kid_subset", "trace_frames": "force.trace_frames"}
 GRAPH.node("homo", "stages.studies:transfer_study", inputs=_STUDY,
            params={**_STUDY_PARAMS, "study": "homo.study", "groups": "homo.groups"},
            description="study homo (paper Fig. 4): the five GelSight twins")
 GRAPH.node("material", "stages.studies:transfer_study", inputs=_STUDY,
            params={**_STUDY_PARAMS, "study": "material.study", "groups": "material.groups"},
            description="study material (paper Fig. 5): seven elastomers, with and without compensation")
-# a hetero ensemble member's own M2M: the fine-tune again from the member's seed, and the pair
-# translated by it, so that the members differ by M2M's chance as well as the regressor's
-_FINETUNE = {k: v for k, v in GRAPH.nodes["m2m"].params.items() if k != "seed"}
-GRAPH.node("m2m_seed", "stages.m2m.nodes:finetune",
-           inputs={"base": "m2m_sim", "markers": "markers[skin=@m2m.finetune.skins]"},
-           params=_FINETUNE, grid={"seed": "hetero.seeds"},
-           description="M2M fine-tuned again from a hetero ensemble member's seed")
-GRAPH.node("translate_seed", "stages.m2m.nodes:translate_seed_sequence",
-           inputs={"model": "m2m_seed[seed={seed}]", "source_markers": "markers[skin={source}]",
-                   "target_markers": "markers[skin={target}]"},
-           params=dict(GRAPH.nodes["translate"].params),
-           grid={"source,target": "hetero.groups.pairs", "seed": "hetero.seeds"},
-           description="a hetero pair translated by a member's own M2M (m2m_seed)")
-GRAPH.node("hetero_seed", "stages.force.nodes:fit_transfer_seed",
-           inputs={"transfer": "transfer[source={source},target={target}]",
-                   "translated": "translate_seed[source={source},target={target},seed={seed}]",
-                   "target_markers": "markers[skin={target}]"},
-           params={k: v for k, v in _FIT.items() if k != "seed"} | _ALIGN | {
-               "finetune_steps": "force.finetune_steps", "train_indenters": "splits.train_indenters"},
-           grid={"source,target": "hetero.groups.pairs", "seed": "hetero.seeds"},
-           description="a hetero pair's genforce_comp trained again from another seed, on its own "
-                       "M2M's translation (its spread)")
-GRAPH.node("hetero", "stages.studies:transfer_study", inputs={**_STUDY, "seeds": "hetero_seed[*]"},
-           params={**_STUDY_PARAMS, "study": "hetero.study", "groups": "hetero.groups",
-                   "ensemble": "force.ensemble", "ensemble_pairs": "m2m.finetune.pairs_per_skin"},
+GRAPH.node("hetero", "stages.studies:transfer_study", inputs=_STUDY,
+           params={**_STUDY_PARAMS, "study": "hetero.study", "groups": "hetero.groups"},
            description="study hetero (paper Fig. 6): GelSight, TacTip, uSkin 3-axis and z-only")
 
+# -- the ablation of genforce_plus: run only when named (`pipeline run ablation`) -------------
+GRAPH.node("transfer_seed", "stages.force.fit:fit_transfer_seed",
+           inputs={"transfer": "transfer[source={source},target={target}]",
+                   "translated": "translate[source={source},target={target}]"},
+           params=_FIT,
+           grid={"source,target": _TRANSFER_PAIRS, "seed": "ablation.seeds"},
+           description="a pair's genforce_comp trained again from another seed (the ablation's spread)")
+GRAPH.node("ablation", "stages.force.study:ablation_study",
+           inputs={"transfer": "transfer[*]", "seeds": "transfer_seed[*]", "translated": "translate[*]",
+                   "markers": "markers[*]"},
+           params={"homo": "homo.groups", "material": "material.groups", "hetero": "hetero.groups",
+                   "val_indenters": "splits.val_indenters",
+                   "train_indenters": "splits.train_indenters", "pairs": "m2m.finetune.pairs_per_skin",
+                   "additions": "plus.additions"},
+           on_demand=True,
+           description="what each addition of genforce_plus earns on the validation indenters, "
+                       "beside the seed spread")
+
 # -- control: the transferred force model in a gripper's loop --------------------------------
-GRAPH.node("transfer_seed", "stages.force.nodes:fit_transfer_seed",
-           inputs={"transfer": "transfer[source={model_pair[0]},target={model_pair[1]}]",
-                   "translated": "translate[source={model_pair[0]},target={model_pair[1]}]",
-                   "target_markers": "markers[skin={model_pair[1]}]"},
-           params={k: v for k, v in _FIT.items() if k != "seed"} | _ALIGN | {
-               "finetune_steps": "force.finetune_steps", "train_indenters": "splits.train_indenters",
-               "model_pair": "control.model_pair"},
-           grid={"seed": "control.ensemble_seeds"},
-           description="the control model's genforce_comp trained again from other seeds (its ensemble)")
 GRAPH.node("control", "stages.control.nodes:control_node",
            inputs={"model": "transfer[source={model_pair[0]},target={model_pair[1]}]",
-                   "members": "transfer_seed[*]", "supervised": "own[skin={model_pair[1]}]",
-                   "patterns": "patterns"},
+                   "supervised": "own[skin={model_pair[1]}]", "patterns": "patterns"},
            params={"model_pair": "control.model_pair", "objects": "control.objects",
                    "grasp": "control.grasp", "slip": "control.slip",
                    # the fingers carry the model's target skin: its gel, look and segmentation

@@ -2,8 +2,9 @@
 artifact, so its tables, heatmaps, radar plots and traces sit side by side in the report.
 
 `transfer_study` (nodes `homo`, `material`, `hetero`) runs stages.m2m.nodes.image_study (FID/KID
-before / m2m / flow_warp) and stages.force.nodes.force_study (source_only / genforce /
-genforce_comp / oracle) over the study's (source, target) pairs.  `groups` names subsets of
+before / m2m / flow_warp) and stages.force.study.force_study (source_only / genforce /
+genforce_comp / genforce_plus / oracle) over the study's (source, target) pairs, on the test
+indenters (`<study>/...`) and on the validation indenters (`<study>_val/...`).  `groups` names subsets of
 pairs (the material study's hard_to_soft and soft_to_hard, paper Fig. 5E-F) whose means are
 reported as `<study>/<group>/<method>/<metric>`, beside the all-pairs `<study>/mean/...`.
 """
@@ -15,31 +16,26 @@ import numpy as np
 
 
 def group_means(metrics: Mapping[str, float], study: str, groups: Mapping[str, list]) -> dict:
-    """`<study>/<group>/<method>/<metric>`: the mean over a group's pairs of every
-    `<study>/<source>_<target>/<method>/<metric>` in metrics."""
+    """`<study>[_val]/<group>/<method>/<metric>`: the mean over a group's pairs of every
+    `<study>[_val]/<source>_<target>/<method>/<metric>` in metrics."""
     out = {}
     for group, pairs in groups.items():
         labels = {f"{s}_{t}" for s, t in pairs}
         values: dict[str, list[float]] = {}
         for name, v in metrics.items():
             parts = name.split("/")
-            if len(parts) == 4 and parts[0] == study and parts[1] in labels:
-                values.setdefault(f"{parts[2]}/{parts[3]}", []).append(float(v))
+            if len(parts) == 4 and parts[0] in (study, f"{study}_val") and parts[1] in labels:
+                values.setdefault(f"{parts[0]}/{group}/{parts[2]}/{parts[3]}", []).append(float(v))
         for key, vs in values.items():
-            out[f"{study}/{group}/{key}"] = float(np.mean(vs))
+            out[key] = float(np.mean(vs))
     return out
 
 
 def transfer_study(*, study: str, groups: Mapping[str, list], features: Mapping, translated: Mapping,
                    warped: Mapping, own: Mapping, transfer: Mapping, markers: Mapping,
-                   test_indenters: list, kid_subset: int, trace_frames: int,
-                   seeds: Mapping | None = None, seen_indenters: list = (), ensemble: str = "mean",
-                   ensemble_pairs: int = 0) -> dict:
-    """One study over the pairs of all its groups (a pair in two groups is scored once);
-    seeds: genforce_comp models of other regressor seeds, seen_indenters: the training
-    indenters, scored as well, ensemble and ensemble_pairs: how the seeds' models are read as
-    one (force_study)."""
-    from stages.force.nodes import force_study
+                   test_indenters: list, val_indenters: list, kid_subset: int, trace_frames: int) -> dict:
+    """One study over the pairs of all its groups (a pair in two groups is scored once)."""
+    from stages.force.study import force_study
     from stages.m2m.nodes import image_study
     pairs: list[list[str]] = []
     for group in groups.values():
@@ -47,9 +43,8 @@ def transfer_study(*, study: str, groups: Mapping[str, list], features: Mapping,
     images = image_study(study=study, pairs=pairs, features=features, translated=translated,
                          warped=warped, kid_subset=kid_subset, markers=markers)
     force = force_study(study=study, pairs=pairs, own=own, transfer=transfer, markers=markers,
-                        test_indenters=test_indenters, trace_frames=trace_frames, seeds=seeds,
-                        seen_indenters=seen_indenters, translated=translated, ensemble=ensemble,
-                        ensemble_pairs=ensemble_pairs)
+                        test_indenters=test_indenters, val_indenters=val_indenters,
+                        trace_frames=trace_frames)
     metrics = {**images.pop("metrics"), **force.pop("metrics")}
     if len(groups) > 1:
         metrics.update(group_means(metrics, study, groups))

@@ -29,7 +29,6 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-from stages.common import attrs_of
 from stages.control.controller import OraclePredictor
 from stages.control.episodes import (DEFAULT_CONTROLLER, DEFAULT_PULL, DEFAULT_TWIN, grasp_metrics,
                                      merged_settings, run_episode, slip_metrics)
@@ -48,9 +47,12 @@ def oracle_factory(*, finger: str = "left", noise_N: float = 0.0, lag_frames: in
                                         lag_frames=lag_frames, seed=seed)
 
 
+PREDICTOR = "genforce_plus"       # the transfer's model the fingers read
+
+
 def control_node(*, model, model_pair, skins: Mapping, sensors: Mapping, materials: Mapping,
                  patterns: Mapping, segmentation: Mapping | None = None, backend: str = "auto",
-                 members: Mapping | None = None, supervised=None, **study) -> dict:
+                 supervised=None, **study) -> dict:
     """Node `control`: the fingers carry the model's target skin, model_pair[1]: its sensor's
     gel (sensors.<skin's sensor>, materials.<its material>) and its image chain (SkinCamera:
     the skin's look rendered and segmented as its training frames were).  supervised: the
@@ -81,7 +83,7 @@ def control_node(*, model, model_pair, skins: Mapping, sensors: Mapping, materia
     if sensor.get("material") not in materials:
         raise InputError(f"control: sensor {spec['sensor']!r} has material {sensor.get('material')!r}, "
                          "not in materials")
-    return control_study(model=model, members=members, supervised=supervised, model_pair=model_pair,
+    return control_study(model=model, supervised=supervised, model_pair=model_pair,
                          sensor=sensor, material=materials[sensor["material"]], skin=spec,
                          skin_name=target, markers=marker_set(patterns, spec["pattern"]),
                          segmentation=segmentation, backend=backend, **study)
@@ -115,16 +117,14 @@ def skin_camera(*, skin: Mapping, markers, sensor: Mapping, size, twin: Mapping 
 def control_study(*, model, objects: Mapping, grasp: list, slip: list, sensor: Mapping,
                   material: Mapping, size, duration_s: float, pull: Mapping, seed: int = 0,
                   twin: Mapping | None = None, controller: Mapping | None = None,
-                  tolerance_N: float = 0.25, model_pair=None, members: Mapping | None = None,
+                  tolerance_N: float = 0.25, model_pair=None,
                   supervised=None, skin: Mapping | None = None, markers=None,
                   segmentation: Mapping | None = None, skin_name: str = "",
                   backend: str = "auto", reference_seed: int | None = None) -> dict:
     """The control study.  model_pair: the (source, target) skins of `model`, for the record.
-    model: an artifact holding force-model weights (loaded with
-    stages.force.model.load_predictor, prefix "genforce_comp"); None runs the oracle (the
-    twin's true force), the ceiling any model is measured against.  members: more such
-    artifacts (`transfer_seed[*]`: the same model trained from other seeds); the controllers
-    then read the mean of all the models' forces (force.model.MeanPredictor).  supervised: an
+    model: a transfer artifact (its genforce_plus model, loaded with
+    stages.force.model.load_predictor); None runs the oracle (the twin's true force), the
+    ceiling any model is measured against.  supervised: an
     own-label artifact (prefix "weights") run through the same episodes; its metrics are
     control/supervised/....  skin (its params), markers (its pattern), segmentation: the
     fingers' images come through the skin's image chain (skin_camera); None: drawn masks of
@@ -144,7 +144,7 @@ def control_study(*, model, objects: Mapping, grasp: list, slip: list, sensor: M
             kw["camera"] = skin_camera(skin=skin, markers=markers, sensor=sensor, size=size,
                                        twin=twin, segmentation=segmentation, skin_name=skin_name,
                                        backend=backend, noise_seed=seed, reference_seed=reference_seed)
-        out = _control_runs(model, members, supervised, kw)
+        out = _control_runs(model, supervised, kw)
     if skin is not None:
         out["attrs"]["camera"] = {"skin": skin_name, "look": str(skin.get("look", "none")),
                                   "reference_seed": kw["camera"].reference_seed}
@@ -153,14 +153,14 @@ def control_study(*, model, objects: Mapping, grasp: list, slip: list, sensor: M
     return out
 
 
-def _control_runs(model, members, supervised, kw: dict) -> dict:
+def _control_runs(model, supervised, kw: dict) -> dict:
     """The study's runs: the model's (the oracle's when None), then the supervised model's on
     the same episodes (the gel tables reused, no figures, no passive slip runs)."""
     kw = {**kw, "tables": {}}
     threads = None
     if model is not None or supervised is not None:
         import torch
-        from stages.force.model import MeanPredictor, load_predictor
+        from stages.force.model import load_predictor
         threads = torch.get_num_threads()
         torch.set_num_threads(1)
     try:
@@ -169,15 +169,9 @@ def _control_runs(model, members, supervised, kw: dict) -> dict:
             out = run_study(oracle_factory(finger=finger, seed=kw["seed"]), **kw)
             out["attrs"]["predictor"] = "oracle"
         else:
-            members = dict(members or {})
-            predictor = load_predictor(model, prefix="genforce_comp")
-            if members:
-                predictor = MeanPredictor([predictor] + [load_predictor(members[k], prefix="genforce_comp")
-                                                         for k in sorted(members)])
+            predictor = load_predictor(model, prefix=PREDICTOR)
             out = run_study(lambda gripper: predictor, **kw)
-            out["attrs"]["predictor"] = "genforce_comp"
-            out["attrs"]["models"] = 1 + len(members)
-            out["attrs"]["member_seeds"] = [int(attrs_of(members[k])["seed"]) for k in sorted(members)]
+            out["attrs"]["predictor"] = PREDICTOR
         if supervised is not None:
             own = load_predictor(supervised, prefix="weights")
             ref = run_study(lambda gripper: own, passive=False, plots=False,

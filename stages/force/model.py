@@ -28,35 +28,21 @@ Fx / Fy / Fz in N:
     difference   0.25 / 0.35 / 1.14    0.91 / 0.72 / 3.41
     stack        0.23 / 0.22 / 0.74    3.69 / 1.17 / 14.1
 
-Mirror read (``mirror_read``): shear is odd under a mirror image of the contact (the columns
-reversed negate Fx, the rows reversed Fy) and the normal force even.  A network fitted to one
-sensor's contacts still reads some shear where there is none, most at an indenter unlike the
-training ones (the wave on the z-only uSkin: phantom shear); that error is even.  With "auto"
-a model reads each frame also as the mirror images under which its sensor's reference looks
-the same (:func:`mirror_group`: correlation >= MIRROR_MATCH at the input size), in one batch,
-and its shear is the mean of the readings with the mirrored axes' signs undone: the odd part,
-which cancels the even error.  Fz stays the frame's own reading (the mirrored readings of a
-network trained on unmirrored frames read the normal force worse: hetero Fz R2 down by up to
-0.18).  A reference that no mirror leaves alike (GelSight A-I and C-I: correlation <= 0.31)
-reads as with "none", where the mirror images would be contacts on markers the sensor lacks
-(A-II -> A-I Fx R2 0.89 -> 0.51 if mirrored anyway).  Training never mirrors (``fit`` can add
-mirrored copies, its ``mirror``).  Measured on the default store's models (2026-11-27, the same
-weights read both ways), mean MAE none -> auto: hetero three-seed ensemble 1.365 -> 1.249 N
-(GelSight -> z-only uSkin Fx R2 0.76 -> 0.81), homo 0.659 -> 0.620 N, material 0.621 ->
-0.569 N, the oracles 0.907 -> 0.896 N.
+Mirror read (``mirror_read``, "none" by default; genforce_plus's `mirror_shear`): shear is odd
+under a mirror image of the contact (the columns reversed negate Fx, the rows reversed Fy) and
+the normal force even.  With "auto" a model reads each frame also as the mirror images under
+which its sensor's reference looks the same (:func:`mirror_group`: correlation >= MIRROR_MATCH
+at the input size), in one batch, and its shear is the mean of the readings with the mirrored
+axes' signs undone: the odd part, which cancels an even error.  Fz stays the frame's own
+reading.  A reference that no mirror leaves alike reads as with "none": its mirror images would
+be contacts on markers the sensor lacks.
 
-Linear Fz read (:meth:`ForceRegressor.set_linear_fz`, off unless set): the network's normal
-force cannot leave its training labels' range (the sigmoid), and a contact that presses harder
-than any it trained on reads at that range's end (the wave on uSkin: 55.9 N true, read at 36
-N).  A model can read Fz as a weighted mean of the network's reading and a linear read of
+Linear Fz read (:meth:`ForceRegressor.set_linear_fz`, off unless set; genforce_plus's
+`linear_fz`): the network's normal force cannot leave its training labels' range (the
+sigmoid), and a contact that presses harder than any it trained on reads at that range's end.
+A model can read Fz as a weighted mean of the network's reading and a linear read of
 :func:`image_statistics` (how much the frame brightens and darkens against the reference, and
-over how many pixels), which is not clipped.  Where marker images are drawn from taxel signals
-(a uSkin dot's area grows with its taxel's normal count) that change is nearly linear in the
-normal force, and nearly so on TacTip, whose press pushes aside the pins it covers; where
-GelSight's markers shift by fractions of their size it is not, and the read is left off
-(stages.force.nodes.fit_linear_fz_read fits it, :func:`fit_linear_fz`; fitted on a skin's
-training contacts, it reads the unseen ones' Fz at R2 0.98 on the z-only uSkin, 0.83 on the
-3-axis one, 0.79 on TacTip, 0.64-0.74 on GelSight A-II and D-I).
+over how many pixels), which is not clipped (:func:`fit_linear_fz`).
 
 Outputs are min-max normalised per axis over [force_min, force_max] (labels outside are
 clipped), so the sigmoid's range is the force range.  force_min = force_max = "auto" (the
@@ -88,7 +74,7 @@ DEFAULT_CONFIG = {
     "head_channels": [48, 64],            # stride-2 residual blocks after the GRU
     "force_min": [-5.0, -5.0, -20.0],     # N, min-max normalisation (paper's ranges)
     "force_max": [5.0, 5.0, 5.0],
-    "mirror_read": "auto",                # "auto": shear read over the reference's mirror group; "none"
+    "mirror_read": "none",                # "auto": shear read over the reference's mirror group
 }
 INPUT_MODES = ("difference", "stack")
 MIRROR_READS = ("auto", "none")
@@ -512,24 +498,6 @@ class StreamingPredictor:
         return self.model.denormalise(y[0]).cpu().numpy().astype(np.float32)
 
 
-class MeanPredictor:
-    """Several streaming predictors on the same frames, read as one: the mean of their forces.
-    Models trained from different seeds err differently at a contact they never saw; their
-    mean varies less from one training run to the next than any one of them."""
-
-    def __init__(self, predictors: Sequence):
-        self.predictors = list(predictors)
-        if not self.predictors:
-            raise ValueError("MeanPredictor needs at least one predictor")
-
-    def reset(self, reference=None) -> None:
-        for p in self.predictors:
-            p.reset(reference)
-
-    def step(self, image) -> np.ndarray:
-        return np.mean([p.step(image) for p in self.predictors], axis=0).astype(np.float32)
-
-
 # ---------------------------------------------------------------------------- serialisation
 
 def to_arrays(model: ForceRegressor) -> dict[str, np.ndarray]:
@@ -574,9 +542,11 @@ def _stored_arrays(art, prefix: str) -> dict:
 
 
 def load_model(art, prefix: str = "weights", device=None) -> ForceRegressor:
-    """The regressor stored in an own ("weights") or transfer ("genforce", "genforce_comp")
-    artifact, or in such a node's output dict; eval mode, on `device` (default the CPU)."""
-    config = attrs_of(art).get("config")
+    """The regressor stored in an own ("weights") or transfer ("genforce", "genforce_comp",
+    "genforce_plus") artifact, or in such a node's output dict; eval mode, on `device` (default
+    the CPU).  A group's own config (attrs configs[prefix]) wins over the artifact's config."""
+    attrs = attrs_of(art)
+    config = (attrs.get("configs") or {}).get(prefix) or attrs.get("config")
     if config is None:
         raise KeyError("the artifact has no attrs['config'] for its force model")
     model = from_arrays(_stored_arrays(art, prefix), config)

@@ -12,15 +12,6 @@ Speed (benchmarks/force.py, default config, 64x64 input, one torch thread of a 2
 about 40 samples/s (contact windows, ~1250 frames/s); a 200-step default fit (batch 4,
 windows up to 24 frames) takes 10-20 s.
 
-Mirror augmentation (``mirror=True``): every contact is also trained on as its three mirror
-images, the columns reversed (x: Fx negated), the rows reversed (y: Fy negated) and both
-(:func:`mirrored`).  An isotropic skin pressed by the mirrored indenter gives the mirrored
-image and force, so the copies are real contacts the collection did not press; an unseen
-indenter whose image is nearly symmetric then reads nearly no shear.  The marker images put x
-along the columns and y along the rows (the column moment of the difference image correlates
-with Fx at +0.2 to +0.5 on GelSight, TacTip and 3-axis uSkin, with Fy at 0.0).  With auto force
-ranges the mirrored labels make the Fx and Fy ranges symmetric.
-
 Two-stage schedules (pretrain, then fine-tune) are two :func:`fit` calls, the second with
 ``init=`` the first's weights and a smaller ``lr``.
 
@@ -44,8 +35,7 @@ import torch
 from tqdm import tqdm
 
 from stages.common import load_state, save_state, torch_device, torch_threads
-from stages.force.model import (MIRRORS, ForceRegressor, from_arrays, model_config, prepare,
-                                resolve_range, to_arrays)
+from stages.force.model import ForceRegressor, from_arrays, model_config, prepare, resolve_range, to_arrays
 
 
 @dataclass
@@ -65,18 +55,6 @@ def make_sequences(images_per_contact: Sequence, forces_per_contact: Sequence, r
         if len(images) != len(force) or force.shape[1:] != (3,):
             raise ValueError(f"a contact has {len(images)} images but forces of shape {force.shape}")
         out.append(ContactSequence(prepare(images, reference, config), force))
-    return out
-
-
-def mirrored(sequences: Sequence[ContactSequence]) -> list[ContactSequence]:
-    """The sequences, then each one's three mirror images (model.MIRRORS: columns reversed with
-    Fx negated, rows reversed with Fy negated, both)."""
-    out = list(sequences)
-    for s in sequences:
-        for dims, axes in MIRRORS.values():
-            force = s.force.copy()
-            force[:, list(axes)] *= -1
-            out.append(ContactSequence(torch.flip(s.inputs, dims), force))
     return out
 
 
@@ -172,7 +150,7 @@ class Checkpoint:
 
 def fit(sequences: list[ContactSequence], config: Mapping | None = None, *, steps: int,
         batch_size: int, lr: float, seed: int = 0, seq_len: int = 32, init: Mapping | None = None,
-        momentum: float = 0.9, weight_decay: float = 5e-4, mirror: bool = False,
+        momentum: float = 0.9, weight_decay: float = 5e-4,
         threads: int | None = None, desc: str = "force fit", checkpoint: Checkpoint | None = None,
         label: str = "fit") -> tuple[ForceRegressor, dict]:
     """Train a regressor; returns (model in eval mode, on the CPU, history).  It trains on
@@ -182,7 +160,7 @@ def fit(sequences: list[ContactSequence], config: Mapping | None = None, *, step
     ``config``.  An "auto" force range is set from the sequences' labels (model.resolve_range).
     history: loss (per step, normalised L1), seconds, samples_per_s (contact windows),
     frames_per_s, clipped_fraction (labels outside the force range), contacts and frames (of
-    `sequences`), mirror.  ``mirror``: train on :func:`mirrored` sequences too.
+    `sequences`).
     ``checkpoint``: where the fit named ``label`` saves its state every checkpoint.every_s
     seconds (at a step's end) and its result at its end; a fit that finds its result there
     returns it, one that finds its state resumes from it (:class:`Checkpoint`).
@@ -194,8 +172,6 @@ def fit(sequences: list[ContactSequence], config: Mapping | None = None, *, step
     if checkpoint is not None and (done := checkpoint.finished(label)) is not None:
         return done
     given = (len(sequences), int(sum(len(s.force) for s in sequences)))
-    if mirror:
-        sequences = mirrored(sequences)
     all_force = np.concatenate([s.force for s in sequences])
     config = resolve_range(config, all_force)
     torch.manual_seed(seed)
@@ -250,8 +226,7 @@ def fit(sequences: list[ContactSequence], config: Mapping | None = None, *, step
     history = {"loss": losses, "seconds": seconds, "steps": int(steps),
                "samples_per_s": steps * batch_size / seconds if seconds > 0 else 0.0,
                "frames_per_s": frames / seconds if seconds > 0 else 0.0,
-               "clipped_fraction": clipped, "contacts": given[0], "frames": given[1],
-               "mirror": bool(mirror)}
+               "clipped_fraction": clipped, "contacts": given[0], "frames": given[1]}
     if checkpoint is not None:
         checkpoint.finish(label, model, history)
     return model, history
@@ -259,20 +234,19 @@ def fit(sequences: list[ContactSequence], config: Mapping | None = None, *, step
 
 def fit_two_stage(sequences: list[ContactSequence], config: Mapping | None = None, *, steps: int,
                   finetune_steps: int, batch_size: int, lr: float, seed: int = 0,
-                  seq_len: int = 32, finetune_lr_factor: float = 0.1, mirror: bool = False,
+                  seq_len: int = 32, finetune_lr_factor: float = 0.1,
                   init: Mapping | None = None, desc: str = "force fit", checkpoint: Checkpoint | None = None,
                   label: str = "fit") -> tuple[ForceRegressor, dict]:
     """Pretrain (`steps` at `lr`), then fine-tune the result (`finetune_steps` at
-    `lr * finetune_lr_factor`) on the same sequences: the paper's two stages (0.1, then 1e-3);
-    ``mirror`` as fit's, in both.
+    `lr * finetune_lr_factor`) on the same sequences: the paper's two stages (0.1, then 1e-3).
     With a `checkpoint`, the stages are the fits `<label>/pretrain` and `<label>/finetune`."""
     model, hist = fit(sequences, config, steps=steps, batch_size=batch_size, lr=lr, seed=seed,
-                      seq_len=seq_len, mirror=mirror, init=init, desc=f"{desc} (pretrain)",
+                      seq_len=seq_len, init=init, desc=f"{desc} (pretrain)",
                       checkpoint=checkpoint, label=f"{label}/pretrain")
     history = {"pretrain": hist}
     if finetune_steps > 0:
         model, hist2 = fit(sequences, model.config, steps=finetune_steps, batch_size=batch_size,
-                           lr=lr * finetune_lr_factor, seed=seed + 1, seq_len=seq_len, mirror=mirror,
+                           lr=lr * finetune_lr_factor, seed=seed + 1, seq_len=seq_len,
                            init=to_arrays(model), desc=f"{desc} (fine-tune)",
                            checkpoint=checkpoint, label=f"{label}/finetune")
         history["finetune"] = hist2

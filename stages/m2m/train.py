@@ -14,16 +14,11 @@ replaces the paper's 5*MSE + LPIPS + 0.5*GAN: binary cross-entropy on the marker
 (the pixel term, exact for binary targets) plus a soft Dice term on marker probability (the
 shape term: it weighs the ~10% of marker pixels as much as the background, which LPIPS did
 for the paper's thin dots).  The fine-tune weighs the BCE of the pixels a deformation changed
-(change_weight, change_share): a copy of the target reference is otherwise almost free, and
-it is the change that carries the force (for uSkin the growth of 16 dots).  The share rule
-sets the weight per target skin from the mean share of its pixels the deformation changes,
-since a contact changes ~1% of a GelSight image and ~12% of a 3-axis uSkin one: one fixed
-weight that lifts the first draws the second's dots too large.  The changed share c in the
-rule is the geometric blend skin^(1-a) * own^a of the skin's mean and the example's own
-(a = change_per_example).  a = 0 weighs every example of a skin alike, and a light touch's
-few changed pixels then weigh little: M2M drew light-touch marker motion at a tenth of its
-size.  a = 1 gives every example's change the same share, so a large contact (the change that
-carries a large force) weighs as little as a light touch's few pixels.
+(change_share): a copy of the target reference is otherwise almost free, and it is the change
+that carries the force (for uSkin the growth of 16 dots).  The share rule sets the weight per
+target skin from the mean share of its pixels the deformation changes, since a contact
+changes about 1% of a GelSight image and about 12% of a 3-axis uSkin one: one fixed weight
+that lifts the first would draw the second's dots too large.
 No adversarial term: outputs are thresholded to binary images, so the blur a GAN fights
 does not reach the artifacts.
 """
@@ -45,43 +40,14 @@ WEIGHT_DECAY = 1e-4
 WARMUP = 0.03              # share of the steps with a linear learning-rate warm-up
 
 
-def target_probabilities(looks, balance: float) -> np.ndarray:
-    """How often each skin is drawn as the target: (1 - balance) spread evenly over the skins
-    plus `balance` spread evenly over the looks (each look's share split among its skins).
-
-    Eight GelSight twins share one look, so a draw uniform over skins gives the TacTip and both
-    uSkin targets 27% of a fine-tune between them, while their translations are the ones that
-    must learn most (a different look, and for uSkin dots that grow with the taxel's load)."""
-    looks = [str(v) for v in looks]
-    if not looks:
-        raise ValueError("target_probabilities: no skins")
-    if not 0.0 <= float(balance) <= 1.0:
-        raise ValueError(f"target_balance must be in [0, 1], got {balance}")
-    kinds = sorted(set(looks))
-    count = {k: looks.count(k) for k in kinds}
-    p = np.array([(1 - balance) / len(looks) + balance / len(kinds) / count[k] for k in looks])
-    return p / p.sum()
-
-
 class PairBatches:
-    """Random (condition, target) batches from paired images (S,K,H,W) and references (S,H,W).
-    `target_p` (S,): how often each skin is the target (default: evenly); the source is then
-    any other skin, evenly.  `identity_share`: that share of the examples translates the target
-    skin into itself (source frame = target frame), so the model sees what a pair of one
-    pattern asks for: the source's deformation, unchanged."""
+    """Random (condition, target) batches from paired images (S,K,H,W) and references (S,H,W):
+    the target skin and the frame evenly, the source any other skin, evenly."""
 
-    def __init__(self, images: np.ndarray, references: np.ndarray, seed: int,
-                 target_p: np.ndarray | None = None, identity_share: float = 0.0):
+    def __init__(self, images: np.ndarray, references: np.ndarray, seed: int):
         if images.ndim != 4 or references.shape != (images.shape[0], *images.shape[2:]):
             raise ValueError(f"images (S,K,H,W) and references (S,H,W) expected, got "
                              f"{images.shape} and {references.shape}")
-        if target_p is not None:
-            target_p = np.asarray(target_p, np.float64)
-            if target_p.shape != (images.shape[0],) or (target_p < 0).any() or not np.isclose(target_p.sum(), 1.0):
-                raise ValueError(f"target_p must be {images.shape[0]} probabilities summing to 1, got {target_p}")
-        if not 0 <= identity_share <= 1:
-            raise ValueError(f"identity_share must be in [0, 1], got {identity_share}")
-        self.target_p, self.identity_share = target_p, float(identity_share)
         self.images, self.refs = images, references
         self.rng = np.random.default_rng(seed)
         self.square = images.shape[2] == images.shape[3]
@@ -94,15 +60,9 @@ class PairBatches:
         changed_fraction (B,))."""
         s, k = self.images.shape[:2]
         f = self.rng.integers(0, k, batch)
-        if self.target_p is None:
-            a = self.rng.integers(0, s, batch)
-            # b != a whenever there are two skins to choose from
-            b = (a + self.rng.integers(1, s, batch)) % s if s > 1 else a
-        else:
-            b = self.rng.choice(s, batch, p=self.target_p)
-            a = (b + self.rng.integers(1, s, batch)) % s if s > 1 else b
-        if self.identity_share > 0:  # drawn only then: share 0 keeps the random stream
-            a = np.where(self.rng.random(batch) < self.identity_share, b, a)
+        a = self.rng.integers(0, s, batch)
+        # b != a whenever there are two skins to choose from
+        b = (a + self.rng.integers(1, s, batch)) % s if s > 1 else a
         stack = np.stack([self.images[a, f], self.refs[a], self.refs[b], self.images[b, f]], 1)
         stack = np.stack([self._symmetry(x, int(g)) for x, g in
                           zip(stack, self.rng.integers(0, 8 if self.square else 4, batch))])
@@ -129,38 +89,29 @@ class PairBatches:
 
 
 def loss_fn(logits: torch.Tensor, target: torch.Tensor, reference: torch.Tensor | None = None,
-            change_weight: float = 0.0, change_share: float = 0.0,
-            changed_fraction: torch.Tensor | None = None,
-            change_per_example: float = 0.0) -> torch.Tensor:
+            change_share: float = 0.0, changed_fraction: torch.Tensor | None = None) -> torch.Tensor:
     """BCE on logits + DICE_WEIGHT * (1 - soft Dice) of the marker probability.
 
     With a target `reference` (binary, like target), the BCE of every pixel the deformation
-    changed (target != reference) weighs w = max(1 + change_weight, s/(1-s) * (1-c)/c) with
-    s = change_share and c the changed share of the pixels: `changed_fraction` (B,) when given
-    (PairBatches passes the target skin's mean) blended with each example's own share as
-    changed_fraction^(1-a) * own^a, a = change_per_example in [0, 1]; without
-    `changed_fraction`, each example's own.  At its mean the
+    changed (target != reference) weighs w = max(1, s/(1-s) * (1-c)/c) with s = change_share
+    and c the changed share of the pixels: `changed_fraction` (B,) when given (PairBatches
+    passes the target skin's mean), else each example's own.  At its mean the
     skin's changed pixels then carry the share s of the BCE: a skin whose contacts change 1% of
     the image gets w ~ 9 at s = 0.1, one whose taxel dots change 12% of it gets w = 1, so each
     is pushed off a copy of its reference about as hard.  Each example's BCE is the w-weighted
     mean of its pixels; the batch's is the mean of those."""
     if not 0 <= change_share < 1:
         raise ValueError(f"change_share must be in [0, 1), got {change_share}")
-    if not 0 <= change_per_example <= 1:
-        raise ValueError(f"change_per_example must be in [0, 1], got {change_per_example}")
-    if reference is None or (change_weight <= 0 and change_share == 0):
+    if reference is None or change_share == 0:
         bce = F.binary_cross_entropy_with_logits(logits, target)
     else:
         changed = (target - reference).abs()
         n = changed[0].numel()
         own = (changed.sum((1, 2, 3), keepdim=True) / n).clamp(min=1.0 / n)
-        if changed_fraction is None:
-            frac = own
-        else:
-            skin = changed_fraction.to(changed).reshape(-1, 1, 1, 1).clamp(min=1.0 / n)
-            frac = skin ** (1.0 - change_per_example) * own ** change_per_example
+        frac = own if changed_fraction is None else \
+            changed_fraction.to(changed).reshape(-1, 1, 1, 1).clamp(min=1.0 / n)
         share = change_share / (1 - change_share) * (1 - frac) / frac
-        w = 1.0 + (share.clamp(min=1.0 + change_weight) - 1.0) * changed
+        w = 1.0 + (share.clamp(min=1.0) - 1.0) * changed
         per_pixel = F.binary_cross_entropy_with_logits(logits, target, reduction="none")
         bce = ((per_pixel * w).sum((1, 2, 3)) / w.sum((1, 2, 3))).mean()
     prob = torch.sigmoid(logits)
@@ -200,12 +151,11 @@ def noisy_input(target: torch.Tensor, config, gen: torch.Generator) -> tuple[tor
 
 
 def fit(net: M2MNet, config, batches: Callable, *, steps: int, batch_size: int, lr: float,
-        seed: int, change_weight: float = 0.0, change_share: float = 0.0,
-        progress: str = "m2m", change_per_example: float = 0.0,
+        seed: int, change_share: float = 0.0, progress: str = "m2m",
         checkpoint: str | None = None, checkpoint_every_s: float = CHECKPOINT_EVERY_S) -> dict:
     """AdamW with warm-up and cosine decay; `batches(b)` gives (condition, target, the target
-    skin's changed fraction) as PairBatches does; change_weight, change_share and
-    change_per_example as in loss_fn (the target reference is the condition's third channel).
+    skin's changed fraction) as PairBatches does; change_share as in loss_fn (the target
+    reference is the condition's third channel).
 
     `checkpoint`: a file where the whole training state (weights, optimiser, schedule, step,
     losses and every random stream, `batches.state()` included) is saved at the end of a step
@@ -250,8 +200,7 @@ def fit(net: M2MNet, config, batches: Callable, *, steps: int, batch_size: int, 
         cond, target, frac = batches(batch_size)
         x_t, t = noisy_input(target, config, gen)
         cond, target, x_t, t = cond.to(dev), target.to(dev), x_t.to(dev), t.to(dev)
-        loss = loss_fn(net(x_t, cond, t), target, (cond[:, 2:3] > 0).float(), float(change_weight),
-                       float(change_share), frac, float(change_per_example))
+        loss = loss_fn(net(x_t, cond, t), target, (cond[:, 2:3] > 0).float(), float(change_share), frac)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

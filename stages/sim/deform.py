@@ -185,8 +185,7 @@ def calibrate(*, indenters: Mapping, trajectory: Mapping, sensor: str, spec: Map
     (GelSight 1.4 mm, the paper's d_max; TacTip 4.5 mm; uSkin 1 mm, the paper's
     heterogeneous calibration), so every sensor's curve spans normalised depth 0..1.
     Returns depth (N,) mm, normalised_depth (N,), force (N,3) float32, loading (N,) bool,
-    repetition (N,) int32, phase (N,) int8 and shift (N,2) mm (the trajectory's, non-zero on
-    its shear leg if it has one), and figures/force_depth.
+    repetition (N,) int32, phase (N,) int8, and figures/force_depth.
     """
     t = _arrays(trajectory, _FRAME_KEYS + ("loading", "normalised_depth"))
     material = material_of(spec, materials)
@@ -208,7 +207,10 @@ def calibrate(*, indenters: Mapping, trajectory: Mapping, sensor: str, spec: Map
     indenter = str(names[t["indenter_id"][0]])
     return {"depth": t["depth"], "normalised_depth": normalised, "force": force, "loading": loading,
             "repetition": repetition, "phase": t["phase"].astype(np.int8),
-            "shift": t["shift"].astype(np.float32),
             "figures": {"force_depth": _force_depth_png(normalised, force, t["phase"], repetition,
                                                         f"{sensor}: calibration ({indenter})")},
-            "attrs": {**sensor_attrs(sensor, spec, material), "indenter": indenter}}
+            # what a lab measures in this indentation, and nothing the twin alone knows (its
+            # elastomer's modulus, friction or hysteresis): the calibration feeds non-oracle methods
+            "attrs": {"sensor": sensor, "indenter": indenter, "max_depth_mm": max_depth,
+                      "pad_mm": [float(v) for v in spec["pad_mm"]],
+                      "units": "mm, N; force (Fx, Fy, Fz) on the pad, Fz < 0 pressing"}}

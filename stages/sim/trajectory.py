@@ -200,43 +200,28 @@ def collection_trajectory(*, n_points: int = 5, point_offset_mm: float = 3.0,
 
 def calibration_trajectory(*, max_depth_mm: float = 1.4, n_steps: int = 28,
                            repetitions: int = 3, indenter: str = "calib_prism",
-                           position_mm=(0.0, 0.0), rate_hz: float = 40.0,
-                           shear_mm: float = 0.0, shear_steps: int = 4) -> dict:
+                           position_mm=(0.0, 0.0), rate_hz: float = 40.0) -> dict:
     """Material-compensation calibration: ``repetitions`` indentations to d_max and back.
 
     Per repetition (one contact each): loading at depths k*d_max/n_steps for k = 1..n_steps
     (phase 0; the peak d_max is sampled once), then unloading at k = n_steps-1..0 (phase 3,
     ending at the surface). Quasi-static steps, one sample per step at ``rate_hz``.
-    ``shear_mm`` > 0 adds one more contact, the shear leg: loading to d_max as above, then
-    shear along +x to ``shear_mm`` in ``shear_steps`` steps (phase 1) and back to 0 (phase 2),
-    recorded no further (its release, after friction has acted, is not a clean unloading
-    curve).  It gives the sensor's shear-to-normal force ratio (stages.force.compensation).
-    Extras: ``loading`` (N,) bool (phases 0-2), ``normalised_depth`` (N,) depth / d_max,
+    Extras: ``loading`` (N,) bool (phase 0), ``normalised_depth`` (N,) depth / d_max,
     ``time`` (N,) s.  ``paired`` is all False (these frames are calibration, not M2M pairs).
     """
     if n_steps < 1 or repetitions < 1 or max_depth_mm <= 0:
         raise ValueError("n_steps, repetitions and max_depth_mm must be positive")
-    if shear_mm < 0 or (shear_mm > 0 and shear_steps < 1):
-        raise ValueError(f"shear_mm {shear_mm} must be >= 0 and shear_steps {shear_steps} >= 1")
     (iid,) = _indenter_ids([indenter])
     press, release = np.arange(1, n_steps + 1), np.arange(n_steps - 1, -1, -1)
     k = [np.concatenate([press, release])] * repetitions          # steps of d_max / n_steps
     phase = [np.r_[np.zeros(n_steps), np.full(n_steps, 3)]] * repetitions
-    shear = [np.zeros(2 * n_steps)] * repetitions
-    if shear_mm > 0:
-        m = int(shear_steps)
-        out = np.arange(1, m + 1) / m
-        k.append(np.r_[press, np.full(2 * m, n_steps)])
-        phase.append(np.r_[np.zeros(n_steps), np.ones(m), np.full(m, 2)])
-        shear.append(shear_mm * np.r_[np.zeros(n_steps), out, out[::-1][1:], 0.0])
     contact = np.concatenate([np.full(len(x), c) for c, x in enumerate(k)]).astype(np.int32)
     depth = max_depth_mm * np.concatenate(k) / n_steps
     phase = np.concatenate(phase).astype(np.int8)
     n = depth.size
     shift = np.zeros((n, 2))
-    shift[:, 0] = np.concatenate(shear)
-    pos = np.empty((n, 3))             # the indenter's position: touchdown point + shift
-    pos[:, 0], pos[:, 1], pos[:, 2] = position_mm[0] + shift[:, 0], position_mm[1], -depth
+    pos = np.empty((n, 3))             # the indenter's position: the touchdown point
+    pos[:, 0], pos[:, 1], pos[:, 2] = position_mm[0], position_mm[1], -depth
     return {
         "position": pos,
         "depth": depth,

@@ -32,8 +32,10 @@ def contact_artifact(images, forces, indenter_names, size=32):
     force = np.concatenate(forces)
     depth = np.abs(force[:, 2]) / 12.0
     phase = np.concatenate([np.where(np.arange(k) < k // 2, 0, 3) for k in n]).astype(np.int8)
+    # every third frame of a contact is location-paired (M2M's fine-tune and genforce_plus read those)
+    paired = np.concatenate([np.arange(k) % 3 == 1 for k in n])
     return {"images": np.concatenate(images), "reference": np.zeros((size, size), np.uint8),
-            "force": force, "normalised_depth": depth.astype(np.float32), "phase": phase,
+            "force": force, "normalised_depth": depth.astype(np.float32), "phase": phase, "paired": paired,
             "contact_id": np.repeat(np.arange(len(n)), n).astype(np.int32),
             "indenter_id": np.repeat([names.index(s) for s in indenter_names], n).astype(np.int16),
             "frame": np.arange(sum(n)), "indenters": np.asarray(names, object)}

@@ -6,7 +6,7 @@ import torch
 from stages.m2m import load_translator
 from stages.m2m.model import (Translator, alphas_cumprod, build, default_config, sample, state_arrays,
                               weights_of)
-from stages.m2m.train import PairBatches, fit, loss_fn, noisy_input, target_probabilities
+from stages.m2m.train import PairBatches, fit, loss_fn, noisy_input
 
 
 def _model(size=(32, 32), width=8, seed=0):
@@ -114,27 +114,6 @@ def test_batches_apply_one_symmetry_to_all_channels_and_loss():
     assert x_t.shape == target.shape and (t == 49).float().mean() >= 0.4
 
 
-def test_change_weight_weighs_the_pixels_the_deformation_changed():
-    """A prediction that copies the reference is wrong exactly on the changed pixels: the
-    change weight raises its BCE from 2/64 wrong pixels to (1+w)*2 / (62 + (1+w)*2)."""
-    ref = torch.zeros(1, 1, 8, 8)
-    ref[..., 2:4, 2:4] = 1.0
-    target = ref.clone()
-    target[..., 2, 4] = target[..., 3, 4] = 1.0             # the marker grew by two pixels
-    copy = (2 * ref - 1) * 30                                # confident copy of the reference
-    from torch.nn import functional as F
-    bce = F.binary_cross_entropy_with_logits(copy, target, reduction="none")
-    wrong = float(bce[..., 2, 4])
-    assert float(bce.mean()) == pytest.approx(2 * wrong / 64, rel=1e-4)
-    dice = 1 - (2 * 4 + 1) / (4 + 6 + 1)
-    plain = float(loss_fn(copy, target))
-    assert plain == pytest.approx(2 * wrong / 64 + dice, rel=1e-3)
-    weighted = float(loss_fn(copy, target, ref, change_weight=10.0))
-    assert weighted == pytest.approx(22 * wrong / (62 + 22) + dice, rel=1e-3)
-    # nothing changed: the weight has nothing to weigh
-    assert float(loss_fn(copy, ref, ref, change_weight=10.0)) == pytest.approx(float(loss_fn(copy, ref)), rel=1e-6)
-
-
 def light_and_heavy():
     """Two 8x8 examples on a 2x2-marker reference, 2 and 16 of 64 pixels changed, and a
     confident copy of the reference as the prediction: (reference, target, copy logits, the
@@ -160,9 +139,8 @@ def test_change_share_gives_the_changed_pixels_their_share_per_example():
     second = 16 * wrong / 64
     got = float(loss_fn(copy, target, ref, change_share=0.2))
     assert got == pytest.approx((first + second) / 2 + dice, rel=1e-3)
-    # change_weight is a floor under the share's weight: 1 + 9 = 10 beats 7.75 in the first
-    floor = float(loss_fn(copy, target, ref, change_weight=9.0, change_share=0.2))
-    assert floor == pytest.approx((10 * 2 * wrong / (62 + 20) + 10 * 16 * wrong / (48 + 160)) / 2 + dice, rel=1e-3)
+    # nothing changed: the weight has nothing to weigh
+    assert float(loss_fn(copy, ref, ref, change_share=0.2)) == pytest.approx(float(loss_fn(copy, ref)), rel=1e-6)
     with pytest.raises(ValueError, match="change_share must be in \\[0, 1\\), got 1.0"):
         loss_fn(copy, target, ref, change_share=1.0)
     with pytest.raises(ValueError, match="change_share must be in \\[0, 1\\), got -0.1"):
@@ -206,30 +184,16 @@ def test_change_share_per_skin_weighs_every_example_of_a_skin_alike():
     assert np.isfinite(zero) and zero == pytest.approx(float(loss_fn(copy, r)), rel=1e-6)
 
 
-def test_target_probabilities_split_the_balanced_share_over_looks():
-    looks = ["gelsight"] * 8 + ["tactip", "taxel", "taxel"]
-    np.testing.assert_allclose(target_probabilities(looks, 0.0), np.full(11, 1 / 11))
-    full = target_probabilities(looks, 1.0)
-    np.testing.assert_allclose(full, [1 / 24] * 8 + [1 / 3, 1 / 6, 1 / 6])
-    half = target_probabilities(looks, 0.5)
-    np.testing.assert_allclose(half[8], 0.5 / 11 + 0.5 / 3)          # TacTip: 0.212
-    np.testing.assert_allclose(half.sum(), 1.0)
-    with pytest.raises(ValueError, match="target_balance must be in"):
-        target_probabilities(looks, 1.5)
-
-
-def test_pair_batches_draw_targets_by_target_p_and_never_the_source():
+def test_pair_batches_draw_targets_evenly_and_never_the_source():
     """Skin i's reference marks line i, so the reference channels of a batch tell which skin was
-    the source (channel 1) and which the target (channel 2); 4000 draws land within 2% of
-    target_p."""
+    the source (channel 1) and which the target (channel 2); 4000 draws land within 2% of even."""
     s, size = 4, 8
     levels = np.array([0, 255, 0, 255], np.uint8)       # binary skins: tell them by their reference
     images = np.repeat(levels[:, None, None, None], 3, 1).repeat(size, 2).repeat(size, 3)
     refs = np.zeros((s, size, size), np.uint8)
     for i in range(s):
         refs[i, i, :] = 255                             # row i marks skin i
-    p = np.array([0.1, 0.2, 0.3, 0.4])
-    cond, _, _ = PairBatches(images, refs, seed=0, target_p=p)(4000)
+    cond, _, _ = PairBatches(images, refs, seed=0)(4000)
 
     def skin(channel):
         """The marked line of each reference: a full row, or a full column after a transpose;
@@ -240,33 +204,8 @@ def test_pair_batches_draw_targets_by_target_p_and_never_the_source():
         return np.minimum(line, size - 1 - line)
 
     target, source = skin(2), skin(1)
-    np.testing.assert_allclose(np.bincount(target, minlength=s) / 4000, p, atol=0.02)
+    np.testing.assert_allclose(np.bincount(target, minlength=s) / 4000, np.full(s, 0.25), atol=0.02)
     assert (target != source).all()
-    with pytest.raises(ValueError, match="target_p must be 4 probabilities"):
-        PairBatches(images, refs, seed=0, target_p=[0.5, 0.5, 0.5, 0.5])
-
-
-def test_change_per_example_blends_the_skin_share_with_the_examples_own():
-    """With the skin's mean changed share 18/128 and the examples' own 2/64 and 16/64, a = 0.5
-    weighs each example's changed pixels by the share rule at sqrt(skin * own): the light
-    touch's 2 pixels get w = 0.25 * (1 - c)/c at c = sqrt(18/128 * 2/64) (~ 3.6) instead of
-    the skin's ~ 1.5, the large contact's 16 get ~ 1.1; a = 0 and a = 1 are the per-skin and
-    per-example rules."""
-    ref, t, copy, wrong, dice = light_and_heavy()
-    skin = torch.full((2,), 18 / 128)
-
-    def expect(c_light, c_heavy):
-        w = [max(1.0, 0.25 * (1 - c) / c) for c in (c_light, c_heavy)]
-        return (w[0] * 2 * wrong / (62 + 2 * w[0]) + w[1] * 16 * wrong / (48 + 16 * w[1])) / 2 + dice
-
-    def got(a):
-        return float(loss_fn(copy, t, ref, change_share=0.2, changed_fraction=skin, change_per_example=a))
-
-    assert got(0.5) == pytest.approx(expect(np.sqrt(18 / 128 * 2 / 64), np.sqrt(18 / 128 * 16 / 64)), rel=1e-4)
-    assert got(0.0) == pytest.approx(expect(18 / 128, 18 / 128), rel=1e-4)
-    assert got(1.0) == pytest.approx(float(loss_fn(copy, t, ref, change_share=0.2)), rel=1e-6)
-    with pytest.raises(ValueError, match=r"change_per_example must be in \[0, 1\], got 1.5"):
-        got(1.5)
 
 
 def test_source_gate_starts_shared_patterns_from_the_source_image():
@@ -293,30 +232,6 @@ def test_source_gate_starts_shared_patterns_from_the_source_image():
     np.testing.assert_array_equal(plain.translate(moved, ref, ref), ref[None])
     with pytest.raises(KeyError, match="do not fit"):
         build(old, weights)
-
-
-def test_identity_share_translates_that_share_of_the_examples_into_their_own_skin():
-    """Three skins with distinct images: an example is an identity pair exactly when its input
-    image is its target.  Share 0 keeps the draws of the plain batches bit for bit."""
-    imgs = _images(12, size=16).reshape(3, 4, 16, 16)
-    refs = _images(3, size=16, seed=3)
-    plain = PairBatches(imgs, refs, seed=0)(32)
-    zero = PairBatches(imgs, refs, seed=0, identity_share=0.0)(32)
-    for a, b in zip(plain, zero):
-        np.testing.assert_array_equal(a.numpy(), b.numpy())
-    assert not bool(((plain[0][:, :1] > 0) == (plain[1] > 0.5)).all((1, 2, 3)).any())
-
-    def identity_rate(share, n=4000):
-        cond, target, _ = PairBatches(imgs, refs, seed=1, identity_share=share)(n)
-        same = ((cond[:, :1] > 0) == (target > 0.5)).all((1, 2, 3))
-        # an identity example conditions on one reference twice
-        np.testing.assert_array_equal(same.numpy(), (cond[:, 1] == cond[:, 2]).all((1, 2)).numpy())
-        return float(same.float().mean())
-
-    assert identity_rate(1.0) == 1.0
-    assert identity_rate(0.25) == pytest.approx(0.25, abs=0.025)
-    with pytest.raises(ValueError, match=r"identity_share must be in \[0, 1\], got 1.5"):
-        PairBatches(imgs, refs, seed=0, identity_share=1.5)
 
 
 class _Stop(Exception):

@@ -1,0 +1,231 @@
+"""The force regressor's training nodes: own[skin], transfer[source,target] and
+transfer_seed[source,target,seed].
+
+`config` is the regressor's config (model.DEFAULT_CONFIG keys) plus the training keys of
+TRAIN_DEFAULTS.  Trained models are stored as arrays (model.to_arrays) under a group
+("weights" for own; "genforce", "genforce_comp", "genforce_plus" for transfer) with
+attrs["config"] (and attrs["configs"][group] where a group's config differs);
+model.load_model / model.load_predictor rebuild them.
+
+Where target labels go: own[target] (the oracle) is the only node that trains on a target's
+labels.  transfer reads the target's images alone: the location-paired frames of its training
+indenters, for genforce_plus (stages.force.plus); tests/stages/force/test_leakage.py poisons the
+target's labels and checks that no weight of transfer changes.
+"""
+from __future__ import annotations
+
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from stages.common import attrs_of, split_timing
+from stages.force.data import contact_runs, read_runs, run_rows
+
+TRAIN_DEFAULTS = {
+    "seq_len": 32,                # longest training window (frames)
+    "finetune_lr_factor": 0.1,    # fine-tune stage learning rate = lr * factor
+}
+
+
+def split_config(config: Mapping | None) -> tuple[dict, dict]:
+    """User config -> (model config, training options)."""
+    from stages.force.model import model_config
+    config = dict(config or {})
+    train = {k: config.pop(k, v) for k, v in TRAIN_DEFAULTS.items()}
+    return model_config(config), train
+
+
+def _checkpoint(path: str | None):
+    """The node's training checkpoint (stages.force.train.Checkpoint) at the engine's path."""
+    from stages.force.train import Checkpoint
+    return Checkpoint(path) if path else None
+
+
+def _split_timing(history: Mapping, ckpt) -> tuple[dict, dict]:
+    """split_timing, plus the steps the node's fits resumed from (timing: resumed_at_step)."""
+    kept, timing = split_timing(history)
+    if ckpt is not None and ckpt.resumed:
+        timing["resumed_at_step"] = dict(ckpt.resumed)
+    return kept, timing
+
+
+def fit_own(*, markers: Mapping, skin: str, train_indenters: Sequence[str], config: Mapping,
+            steps: int, batch_size: int, lr: float, seed: int, checkpoint: str | None = None) -> dict:
+    """Node `own[skin]`: the regressor on the skin's own images and labels, trained on the
+    contacts of `train_indenters`: the source-only model where the skin is a source, the oracle
+    where it is a target.  Returns weights/..., attrs {config, skin, train_indenters, history}
+    and figures/loss.  `checkpoint` (the engine's): the training resumes from there after an
+    interruption (stages.force.train.Checkpoint)."""
+    from stages.force.model import to_arrays
+    from stages.force.train import fit, loss_figure, make_sequences
+    model_cfg, train = split_config(config)
+    runs = contact_runs(markers, train_indenters)
+    if not runs:
+        raise ValueError(f"fit_own[{skin}]: no contacts of train_indenters {list(train_indenters)}")
+    reference = np.asarray(markers["reference"])
+    force = np.asarray(markers["force"], np.float32)
+    seqs = make_sequences(read_runs(markers, "images", runs), [force[a:b] for a, b in runs],
+                          reference, model_cfg)
+    ckpt = _checkpoint(checkpoint)
+    model, history = fit(seqs, model_cfg, steps=int(steps), batch_size=int(batch_size), lr=float(lr),
+                         seed=int(seed), seq_len=int(train["seq_len"]), desc=f"own[{skin}]",
+                         checkpoint=ckpt, label="own")
+    model.set_reference(reference)
+    kept, timing = _split_timing(history, ckpt)
+    return {"weights": to_arrays(model),
+            "attrs": {"config": model.config, "train": train, "skin": skin,
+                      "train_indenters": list(train_indenters), "history": kept},
+            "timing": timing,
+            "figures": {"loss": loss_figure({skin: history}, f"own[{skin}]")}}
+
+
+def calibrations(twins, specs, captured: Mapping | None) -> tuple[tuple, dict]:
+    """The (source, target) calibrations a transfer compensates with: each sensor's captured
+    calibration (captured: sensor -> capture_calibration artifact) where there is one, else its
+    twin's calibrate artifact; and {"source"|"target": "capture_calibration[sensor=...]"} for
+    the captured ones (empty without)."""
+    chosen, which = [], {}
+    for end, twin, spec in zip(("source", "target"), twins, specs):
+        sensor = None if spec is None else spec.get("sensor")
+        if captured and sensor in captured:
+            chosen.append(captured[sensor])
+            which[end] = f"capture_calibration[sensor={sensor}]"
+        else:
+            chosen.append(twin)
+    return tuple(chosen), which
+
+
+def compensated_labels(translated: Mapping, curves: Mapping) -> np.ndarray:
+    """(N,3) the translations' (source's) labels compensated with `curves` ({"source", "target":
+    Curves.as_dict()}, as a transfer records them): the paper's compensation."""
+    from stages.force.compensation import Curves, compensate, loading_mask
+    return compensate(np.asarray(translated["force"], np.float32),
+                      np.asarray(translated["normalised_depth"], float),
+                      loading_mask(np.asarray(translated["phase"])),
+                      Curves.from_dict(curves["source"]), Curves.from_dict(curves["target"]))
+
+
+def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_calibration: Mapping,
+                 source: str, target: str, config: Mapping, steps: int, batch_size: int, lr: float,
+                 seed: int, finetune_steps: int, train_indenters: Sequence[str] | None = None,
+                 target_markers: Mapping | None = None, pairs: int = 0, additions: Sequence[str] = (),
+                 source_spec: Mapping | None = None, target_spec: Mapping | None = None,
+                 captured_calibrations: Mapping | None = None, checkpoint: str | None = None) -> dict:
+    """Node `transfer[source,target]`: regressors on the source's sequences translated into the
+    target's style (images; reference = the target's):
+
+      genforce       trained with the source's labels;
+      genforce_comp  trained with the labels compensated to the target's material (the paper's
+                     compensation, stages.force.compensation);
+      genforce_plus  genforce_comp with `additions` (stages.force.plus), which read `pairs`
+                     location-paired frames of the target's own collection on
+                     `train_indenters` (its images only).
+
+    The material prior of each sensor is its `calibrate` artifact (the twin's), or its
+    `capture_calibration` where `captured_calibrations` (sensor -> artifact) holds one (attrs
+    calibration: which).  Both fits follow the same two-stage schedule from the same seed and
+    differ only in their labels: `steps` at `lr` on the translated contacts of
+    `train_indenters` (None: all), then `finetune_steps` at lr * finetune_lr_factor (0 skips
+    it).  Where the two calibrations give the same curves the compensation is the identity and
+    genforce_comp is genforce's weights, not retrained (attrs compensation_identity).
+    `checkpoint` (the engine's): an interrupted node re-runs none of its finished fits and
+    resumes the one it was in."""
+    from stages.force import plus
+    from stages.force.compensation import curves_figure, curves_from_calibration, label_scale, loading_mask
+    from stages.force.model import to_arrays
+    from stages.force.train import ContactSequence, fit_two_stage, loss_figure, make_sequences
+    name = f"transfer[{source}->{target}]"
+    additions = plus.check_additions(additions, name)
+    (source_calibration, target_calibration), calibration_from = calibrations(
+        (source_calibration, target_calibration), (source_spec, target_spec), captured_calibrations)
+    model_cfg, train = split_config(config)
+    src_curves = curves_from_calibration(source_calibration)
+    tgt_curves = curves_from_calibration(target_calibration)
+    curves = {"source": src_curves.as_dict(), "target": tgt_curves.as_dict()}
+    runs = contact_runs(translated, train_indenters)
+    if not runs:
+        raise ValueError(f"{name}: no translated contacts to train on")
+    paired = (plus.paired_frames(translated, target_markers, compensated_labels(translated, curves),
+                                 train_indenters, pairs) if additions else None)
+    reference = np.asarray(translated["reference"])
+    force = np.asarray(translated["force"], np.float32)
+    identity = src_curves == tgt_curves
+    comp = compensated_labels(translated, curves)
+    seqs = make_sequences(read_runs(translated, "images", runs), [force[a:b] for a, b in runs],
+                          reference, model_cfg)
+    kwargs = dict(steps=int(steps), finetune_steps=int(finetune_steps), batch_size=int(batch_size),
+                  lr=float(lr), seed=int(seed), seq_len=int(train["seq_len"]),
+                  finetune_lr_factor=float(train["finetune_lr_factor"]))
+    ckpt = _checkpoint(checkpoint)
+    genforce, hist = fit_two_stage(seqs, model_cfg, desc=f"{name} genforce", checkpoint=ckpt,
+                                   label="genforce", **kwargs)
+    genforce.set_reference(reference)
+    histories = {"genforce": hist}
+    genforce_comp = genforce
+    if not identity:
+        comp_seqs = [ContactSequence(s.inputs, comp[a:b]) for s, (a, b) in zip(seqs, runs)]
+        genforce_comp, histories["genforce_comp"] = fit_two_stage(
+            comp_seqs, model_cfg, desc=f"{name} genforce_comp", checkpoint=ckpt,
+            label="genforce_comp", **kwargs)
+        genforce_comp.set_reference(reference)
+    genforce_plus, plus_info = (plus.apply(genforce_comp, paired, additions) if additions
+                                else (genforce_comp, {}))
+    rows = run_rows(runs)
+    phase = np.asarray(translated["phase"])
+    scale = (np.ones(rows.size) if identity else
+             label_scale(np.asarray(translated["normalised_depth"], float)[rows], loading_mask(phase[rows]),
+                         src_curves, tgt_curves))
+    kept, timing = _split_timing(histories, ckpt)
+    return {"genforce": to_arrays(genforce), "genforce_comp": to_arrays(genforce_comp),
+            "genforce_plus": to_arrays(genforce_plus),
+            "attrs": {"config": genforce.config,
+                      "configs": {"genforce_comp": genforce_comp.config,
+                                  "genforce_plus": genforce_plus.config},
+                      "train": train, "source": source, "target": target,
+                      "compensation_identity": bool(identity), "curves": curves,
+                      **({"calibration": calibration_from} if calibration_from else {}),
+                      "plus": {"additions": additions, **plus_info,
+                               **({"pairs": paired.count} if paired is not None else {})},
+                      "label_scale": {"mean": float(scale.mean()), "min": float(scale.min()),
+                                      "max": float(scale.max())},
+                      "train_indenters": None if train_indenters is None else list(train_indenters),
+                      "history": kept},
+            "timing": timing,
+            "figures": {"loss": loss_figure(histories, name),
+                        "compensation": curves_figure({source: (source_calibration, src_curves),
+                                                       target: (target_calibration, tgt_curves)},
+                                                      f"compensation {source} -> {target}")}}
+
+
+def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, config: Mapping,
+                      steps: int, batch_size: int, lr: float, finetune_steps: int,
+                      train_indenters: Sequence[str] | None = None, checkpoint: str | None = None) -> dict:
+    """Node `transfer_seed[source,target,seed]`: `transfer`'s genforce_comp trained again from
+    another seed, on the same translation with the same compensated labels (the curves
+    `transfer` records) and the same two-stage schedule: the seeds the ablation's spread is
+    measured over.  Returns genforce_comp weights and attrs {config, source, target, seed,
+    history}."""
+    from stages.force.model import to_arrays
+    from stages.force.train import fit_two_stage, make_sequences
+    info = attrs_of(transfer)
+    name = f"transfer[{info['source']}->{info['target']}] seed {seed}"
+    model_cfg, train = split_config(config)
+    runs = contact_runs(translated, train_indenters)
+    if not runs:
+        raise ValueError(f"{name}: no translated contacts to train on")
+    reference = np.asarray(translated["reference"])
+    force = compensated_labels(translated, info["curves"])
+    seqs = make_sequences(read_runs(translated, "images", runs), [force[a:b] for a, b in runs],
+                          reference, model_cfg)
+    ckpt = _checkpoint(checkpoint)
+    model, history = fit_two_stage(seqs, model_cfg, steps=int(steps), finetune_steps=int(finetune_steps),
+                                   batch_size=int(batch_size), lr=float(lr), seed=int(seed),
+                                   seq_len=int(train["seq_len"]),
+                                   finetune_lr_factor=float(train["finetune_lr_factor"]), desc=name,
+                                   checkpoint=ckpt, label="seed")
+    model.set_reference(reference)
+    kept, timing = _split_timing(history, ckpt)
+    return {"genforce_comp": to_arrays(model),
+            "attrs": {"config": model.config, "train": train, "source": info["source"],
+                      "target": info["target"], "seed": int(seed), "history": kept},
+            "timing": timing}

@@ -1,0 +1,244 @@
+"""Scoring the force methods of a study, and the ablation of genforce_plus's additions.
+
+Every method of a source -> target pair reads the target's images with the target's reference
+and is scored against the target's labels:
+
+  source_only    own[source], the regressor trained on the source's own labels
+  genforce       transfer[...] genforce: M2M translations, the source's labels
+  genforce_comp  transfer[...] genforce_comp: the same with the paper's compensation
+  genforce_plus  transfer[...] genforce_plus: genforce_comp with our additions (stages.force.plus)
+  oracle         own[target], trained on the target's own labels: the ceiling
+
+on two disjoint sets of the target's contacts: the validation indenters, which make every
+choice (metrics `<study>_val/...`), and the test indenters, the authors' unseen ones, read by
+this final scoring only (metrics `<study>/...`).  Neither set was trained on.
+"""
+from __future__ import annotations
+
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from stages.common import attrs_of
+from stages.force.data import scoring_set
+from stages.force.figures import METHODS, r2_hist_png, radar_png, trace_png, violin_png
+
+AXES = ("fx", "fy", "fz", "total")
+
+
+def check_splits(train: Sequence[str] | None, val: Sequence[str], test: Sequence[str], name: str) -> None:
+    """The three indenter splits are disjoint, and validation and test are not empty."""
+    from stages.common import InputError
+    sets = {"train": set(map(str, train or ())), "validation": set(map(str, val)), "test": set(map(str, test))}
+    for what in ("validation", "test"):
+        if not sets[what]:
+            raise InputError(f"{name}: the {what} split names no indenter")
+    for a, b in (("train", "validation"), ("train", "test"), ("validation", "test")):
+        both = sorted(sets[a] & sets[b])
+        if both:
+            raise InputError(f"{name}: indenters {both} are in both the {a} and the {b} split")
+
+
+def _models(own, transfer, source, target, load):
+    tr = transfer[f"source={source},target={target}"]
+    return {"source_only": load(own[source], "weights"), "genforce": load(tr, "genforce"),
+            "genforce_comp": load(tr, "genforce_comp"), "genforce_plus": load(tr, "genforce_plus"),
+            "oracle": load(own[target], "weights")}
+
+
+def force_study(*, study: str, pairs: Sequence[Sequence[str]], own: Mapping[str, Mapping],
+                transfer: Mapping[str, Mapping], markers: Mapping[str, Mapping],
+                test_indenters: Sequence[str], val_indenters: Sequence[str],
+                trace_frames: int = 1000) -> dict:
+    """The force part of nodes homo / material / hetero: METHODS per pair, scored on the
+    target's validation and test contacts.  Metrics `<study>[_val]/<source>_<target>/<method>/
+    <metric>` and `<study>[_val]/mean/<method>/<metric>`.  Arrays mae/<method> (pairs, 4: fx, fy,
+    fz, total) and r2/<method> (pairs, 3) of the test split, pairs, sources, targets, trace/*;
+    figures radar (MAE), r2_hist, trace, violin (test split)."""
+    from stages.common import torch_threads
+    with torch_threads():
+        return _force_study(study, [(str(s), str(t)) for s, t in pairs], own, transfer, markers,
+                            list(test_indenters), list(val_indenters), int(trace_frames))
+
+
+def _force_study(study, pairs, own, transfer, markers, test_indenters, val_indenters, trace_frames) -> dict:
+    from stages.common import torch_device
+    from stages.force.metrics import METRICS, force_metrics
+    from stages.force.model import load_model, predict_contacts
+    dev = torch_device()
+
+    def load(art, prefix):                # batch prediction runs where training does
+        return load_model(art, prefix, device=dev)
+
+    def predict(model, data):
+        return predict_contacts(model, data["images"], data["contact_id"], data["reference"])
+
+    if not pairs:
+        raise ValueError(f"force_study[{study}]: no pairs")
+    for s, t in pairs:
+        for name, table, key in (("own", own, s), ("own", own, t), ("markers", markers, t),
+                                 ("transfer", transfer, f"source={s},target={t}")):
+            if key not in table:
+                raise KeyError(f"force_study[{study}]: {name} has no {key!r} (pair {s} -> {t})")
+        check_splits(attrs_of(transfer[f"source={s},target={t}"]).get("train_indenters"),
+                     val_indenters, test_indenters, f"force_study[{study}] {s} -> {t}")
+    splits = {study: test_indenters, f"{study}_val": val_indenters}
+    sets: dict = {}
+    metrics: dict = {}
+    per_pair: list[dict] = []
+    for s, t in pairs:
+        models = _models(own, transfer, s, t, load)
+        for prefix, indenters in splits.items():
+            key = (t, prefix)
+            if key not in sets:
+                sets[key] = scoring_set(markers[t], indenters, "validation" if prefix.endswith("_val") else "test")
+            data = sets[key]
+            preds = {m: predict(models[m], data) for m in METHODS}
+            scores = {m: force_metrics(preds[m], data["force"]) for m in METHODS}
+            for m in METHODS:
+                for k, v in scores[m].items():
+                    metrics[f"{prefix}/{s}_{t}/{m}/{k}"] = v
+            if prefix == study:
+                per_pair.append({"source": s, "target": t, "scores": scores,
+                                 "errors": {m: preds[m] - data["force"] for m in METHODS}, "preds": preds})
+    for prefix in splits:
+        for m in METHODS:
+            for k in METRICS:
+                metrics[f"{prefix}/mean/{m}/{k}"] = float(np.mean(
+                    [metrics[f"{prefix}/{s}_{t}/{m}/{k}"] for s, t in pairs]))
+    mae = {m: np.array([[p["scores"][m][f"mae_{a}"] for a in AXES] for p in per_pair]) for m in METHODS}
+    r2 = {m: np.array([[p["scores"][m][k] for k in ("r2_fx", "r2_fy", "r2_fz")] for p in per_pair])
+          for m in METHODS}
+    labels = [f"{p['source']}_{p['target']}" for p in per_pair]
+    # representative pair: the median genforce_comp total MAE
+    rep = per_pair[int(np.argsort(mae["genforce_comp"][:, 3])[(len(per_pair) - 1) // 2])]
+    test = sets[(rep["target"], study)]
+    n = min(trace_frames, len(test["force"]))
+    trace = {"true": test["force"][:n],
+             **{m: rep["preds"][m][:n].astype(np.float32) for m in ("source_only", "genforce_comp", "genforce_plus")}}
+    figures = {"radar": radar_png(mae, labels, study), "r2_hist": r2_hist_png(r2, study),
+               "trace": trace_png(trace, f"{study}: {rep['source']} -> {rep['target']}"),
+               "violin": violin_png(per_pair, study)}
+    return {"mae": mae, "r2": r2, "pairs": labels, "sources": [p["source"] for p in per_pair],
+            "targets": [p["target"] for p in per_pair], "trace": trace, "figures": figures,
+            "metrics": metrics,
+            "attrs": {"study": study, "test_indenters": test_indenters, "val_indenters": val_indenters,
+                      "trace_pair": [rep["source"], rep["target"]],
+                      "test_frames": {t: int(len(v["force"])) for (t, p), v in sets.items() if p == study},
+                      "val_frames": {t: int(len(v["force"])) for (t, p), v in sets.items() if p != study}}}
+
+
+# ------------------------------------------------------------------------------- ablation
+
+def _seed_models(seeds: Mapping[str, Mapping], source: str, target: str) -> list[tuple[int, Mapping]]:
+    """(seed, artifact) of `seeds` (transfer_seed, keyed "source=..,target=..,seed=..") trained
+    for source -> target, in seed order."""
+    found = []
+    for key, art in seeds.items():
+        fields = dict(part.split("=", 1) for part in key.split(","))
+        if fields.get("source") == source and fields.get("target") == target:
+            found.append((int(fields.get("seed", attrs_of(art).get("seed", 0))), art))
+    return sorted(found, key=lambda x: x[0])
+
+
+def ablation_study(*, homo: Mapping, material: Mapping, hetero: Mapping, transfer: Mapping[str, Mapping],
+                   seeds: Mapping[str, Mapping], translated: Mapping[str, Mapping],
+                   markers: Mapping[str, Mapping], val_indenters: Sequence[str],
+                   train_indenters: Sequence[str], pairs: int, additions: Sequence[str]) -> dict:
+    """Node `ablation`: what each addition of genforce_plus earns, on the validation indenters.
+
+    For every study (`homo`, `material`, `hetero`: its groups of pairs) and every seed's genforce_comp model of each pair (the
+    transfer's, seed from its config, and `seeds`', at least 3 in all), genforce_plus is
+    rebuilt with all `additions` and with each one left out in turn (stages.force.plus.apply,
+    on the transfer's location-paired frames), and scored on the target's validation contacts.
+    With m(s, v) the mean over the study's pairs of the validation MAE (total) of variant v
+    from seed s:
+
+      ablation/<study>/<addition>/delta_mae_total   mean over s of m(s, without it) - m(s, all):
+                                                    positive means the addition helps
+      ablation/<study>/seed_spread/mae_total        the standard deviation over s of m(s, all)
+      ablation/<study>/genforce_plus/mae_total      mean over s of m(s, all)
+      ablation/<study>/genforce_comp/mae_total      mean over s of m(s, no addition)
+
+    An addition whose delta does not beat the seed spread has not earned its place."""
+    from stages.common import torch_threads
+    from stages.force import plus
+    additions = plus.check_additions(additions, "ablation")
+    studies = {}
+    for study, groups in (("homo", homo), ("material", material), ("hetero", hetero)):
+        pairs_of = [[str(s), str(t)] for group in groups.values() for s, t in group]
+        studies[study] = [p for k, p in enumerate(pairs_of) if p not in pairs_of[:k]]
+    with torch_threads():
+        return _ablation(studies, transfer, seeds, translated, markers, list(val_indenters),
+                         list(train_indenters), int(pairs), additions)
+
+
+def ablation_variants(additions: Sequence[str]) -> dict[str, list[str]]:
+    """The genforce_plus variants the ablation scores: "all", "none" and "-<addition>"."""
+    return {"all": list(additions), "none": [],
+            **{f"-{a}": [b for b in additions if b != a] for a in additions}}
+
+
+def ablation_metrics(study: str, scores: Mapping[str, np.ndarray], additions: Sequence[str]) -> dict:
+    """The ablation's metrics from `scores`: variant -> (seeds, pairs) validation MAE totals."""
+    m = {v: np.asarray(s, float).mean(axis=1) for v, s in scores.items()}     # per seed
+    if len(m["all"]) < 3:
+        raise ValueError(f"ablation[{study}]: {len(m['all'])} seeds; the seed spread needs 3 or more")
+    out = {f"ablation/{study}/seed_spread/mae_total": float(np.std(m["all"], ddof=1)),
+           f"ablation/{study}/genforce_plus/mae_total": float(np.mean(m["all"])),
+           f"ablation/{study}/genforce_comp/mae_total": float(np.mean(m["none"]))}
+    for a in additions:
+        out[f"ablation/{study}/{a}/delta_mae_total"] = float(np.mean(m[f"-{a}"] - m["all"]))
+    return out
+
+
+def _ablation(studies, transfer, seeds, translated, markers, val_indenters, train_indenters, pairs,
+              additions) -> dict:
+    from stages.force import plus
+    from stages.force.fit import compensated_labels
+    from stages.force.metrics import force_metrics
+    from stages.force.model import load_model, predict_contacts
+    variants = ablation_variants(additions)
+    metrics, per_study, sets = {}, {}, {}
+    for study, study_pairs in studies.items():
+        study_pairs = [(str(s), str(t)) for s, t in study_pairs]
+        scores: dict[str, list] = {v: [] for v in variants}        # variant -> per pair: per seed
+        for s, t in study_pairs:
+            key = f"source={s},target={t}"
+            for name, table in (("transfer", transfer), ("translated", translated)):
+                if key not in table:
+                    raise KeyError(f"ablation[{study}]: {name} has no {key!r}")
+            tr = transfer[key]
+            info = attrs_of(tr)
+            overlap = sorted(set(info.get("train_indenters") or ()) & set(val_indenters))
+            if overlap:
+                from stages.common import InputError
+                raise InputError(f"ablation[{study}]: validation indenters {overlap} trained {s} -> {t}")
+            if t not in sets:
+                sets[t] = scoring_set(markers[t], val_indenters, "validation")
+            val = sets[t]
+            paired = plus.paired_frames(translated[key], markers[t], compensated_labels(translated[key], info["curves"]),
+                                        train_indenters, pairs)
+            models = [load_model(tr, "genforce_comp")] + [load_model(a, "genforce_comp")
+                                                          for _, a in _seed_models(seeds, s, t)]
+            if scores["all"] and len(models) != len(scores["all"][0]):
+                raise ValueError(f"ablation[{study}]: {s} -> {t} has {len(models)} seed models, the "
+                                 f"study's other pairs {len(scores['all'][0])}")
+            per_variant = {v: [] for v in variants}
+            for model in models:
+                for v, used in variants.items():
+                    built, _ = plus.apply(model, paired, used)
+                    pred = predict_contacts(built, val["images"], val["contact_id"], val["reference"])
+                    per_variant[v].append(force_metrics(pred, val["force"])["mae_total"])
+            for v in variants:
+                scores[v].append(per_variant[v])
+        table = {v: np.asarray(scores[v], float).T for v in variants}   # (seeds, pairs)
+        metrics.update(ablation_metrics(study, table, additions))
+        per_study[study] = table
+    from stages.force.figures import ablation_png
+    return {"metrics": metrics,
+            **{f"mae/{study}/{v}": table[v] for study, table in per_study.items() for v in table},
+            "figures": {"ablation": ablation_png(metrics, list(studies), additions)},
+            "attrs": {"studies": {k: [list(p) for p in v] for k, v in studies.items()},
+                      "additions": list(additions), "val_indenters": val_indenters,
+                      "seeds": len(next(iter(per_study.values()))["all"]) if per_study else 0}}
