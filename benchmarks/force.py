@@ -7,21 +7,20 @@ Training runs where the pipeline's does (stages.common.torch_device: the GPU whe
 one; GENFORCE_DEVICE=cpu on a GPU machine for the CPU figures); prediction runs on the CPU.
 
 Data: 30 contact sequences of 50 frames of 128x128 uint8 0/255 marker-like images (random
-dots laid out symmetric about both centre lines, as the twins' markers are, so that the
-default mirror read reads each frame with its three mirror images, as it does a GelSight,
-TacTip or uSkin frame; `--config '{"mirror_read": "none"}'` reads the frame alone; the speed
-does not depend on the content otherwise), the default-profile size.  Columns are torch
-thread counts.  Rows:
+dots laid out symmetric about both centre lines, as the twins' markers are, so that
+genforce_plus's mirror read reads each frame with its three mirror images, as it does a
+GelSight, TacTip or uSkin frame; the speed does not depend on the content otherwise), the
+default-profile size.  Columns are torch thread counts.  Rows:
   train samples/s     contact windows per second (batch 4, windows up to 24 frames, padded)
   train frames/s      frames through forward + backward per second
   200-step fit (s)    one default-profile training (200 steps) at that speed
   predict frames/s    predict_contacts over the 1500 frames (contacts batched, state reset)
-  stream ms/frame     StreamingPredictor.step latency (median over 200 frames)
+  stream ms/frame     StreamingPredictor.step latency (median over 200 frames): the plain
+                      regressor, as source_only, genforce and genforce_comp read
   x 40 Hz             how many times faster than a 40 Hz sensor (25 ms per frame) streaming is
-  +linear Fz ms/frame the same model streaming with the linear Fz read (set_linear_fz), as the
-                      models transferred onto the uSkins and TacTip read
-  mean-of-3 ms/frame  MeanPredictor over 3 streaming models (the control study's ensemble)
-  mean-of-3 x 40 Hz   the same against a 40 Hz sensor
+  plus ms/frame       the same model as genforce_plus reads it: the mirror read (the frame and
+                      its three mirror images in one batch) and the linear Fz read
+  plus x 40 Hz        the same against a 40 Hz sensor
   cpu/wall            process CPU time over wall time while training: about the thread count
                       on an idle machine, lower when other processes share the cores
 """
@@ -37,7 +36,7 @@ import numpy as np                                                              
 import torch                                                                    # noqa: E402
 
 from benchmarks.summary import record                                           # noqa: E402
-from stages.force.model import (MeanPredictor, StreamingPredictor, from_arrays,   # noqa: E402
+from stages.force.model import (StreamingPredictor, from_arrays,   # noqa: E402
                                 model_config, predict_contacts, to_arrays)
 from stages.common import torch_device, torch_threads                           # noqa: E402
 from stages.force.train import fit, make_sequences                              # noqa: E402
@@ -84,16 +83,15 @@ def bench(threads, config, steps, contacts=30, length=50):
         t = time.perf_counter()
         predict_contacts(model, images, cid)
         predict_fps = len(images) / (time.perf_counter() - t)
-        linear = from_arrays(to_arrays(model), model.config)      # with the linear Fz read
-        linear.set_linear_fz([-30.0, -5.0, 10.0, 2.0], 0.5, 0.5)
+        # genforce_plus: the mirror read and the linear Fz read on the same weights
+        plus = from_arrays(to_arrays(model), {**model.config, "mirror_read": "auto"})
+        plus.set_linear_fz([-30.0, -5.0, 10.0, 2.0], 0.5, 0.5)
         ms = step_ms(StreamingPredictor(model), images[:200])
-        ms_lin = step_ms(StreamingPredictor(linear), images[:200])
-        ms3 = step_ms(MeanPredictor([StreamingPredictor(model) for _ in range(3)]), images[:200])
-    return model.mirrors_for(ref), {"train samples/s": hist["samples_per_s"], "train frames/s": hist["frames_per_s"],
+        ms_plus = step_ms(StreamingPredictor(plus, ref), images[:200])
+    return plus.mirrors_for(ref), {"train samples/s": hist["samples_per_s"], "train frames/s": hist["frames_per_s"],
             f"{FIT_STEPS}-step fit (s)": FIT_STEPS * hist["seconds"] / steps, "predict frames/s": predict_fps,
             "stream ms/frame": ms, "x 40 Hz": 1e3 / SENSOR_HZ / ms,
-            "+linear Fz ms/frame": ms_lin,
-            "mean-of-3 ms/frame": ms3, "mean-of-3 x 40 Hz": 1e3 / SENSOR_HZ / ms3, "cpu/wall": cpu_ratio}
+            "plus ms/frame": ms_plus, "plus x 40 Hz": 1e3 / SENSOR_HZ / ms_plus, "cpu/wall": cpu_ratio}
 
 
 def main():
@@ -112,7 +110,7 @@ def main():
     runs = {t: bench(t, config, args.steps) for t in threads}
     cols = {t: row for t, (_, row) in runs.items()}
     mirrors = next(iter(runs.values()))[0]
-    print(f"read: each frame and its mirror images {list(mirrors)} in one batch")
+    print(f"genforce_plus reads each frame and its mirror images {list(mirrors)} in one batch")
     rows = list(next(iter(cols.values())))
     print(f"{'':20s}" + "".join(f"{f'threads={t}':>12s}" for t in threads))
     for r in rows:
@@ -122,9 +120,9 @@ def main():
         fps, ms = cols[t]["predict frames/s"], cols[t]["stream ms/frame"]
         record("force", f"batch predict vs 40 Hz, threads={t}", f"{fps:.0f} frames/s", fps / SENSOR_HZ, ">= 1")
         record("force", f"streaming vs 40 Hz, threads={t}", f"{ms:.2f} ms/frame", cols[t]["x 40 Hz"], ">= 1")
-        ms3 = cols[t]["mean-of-3 ms/frame"]
-        record("force", f"mean of 3 streaming vs 40 Hz, threads={t}", f"{ms3:.2f} ms/frame",
-               cols[t]["mean-of-3 x 40 Hz"], ">= 1")
+        ms_plus = cols[t]["plus ms/frame"]
+        record("force", f"genforce_plus streaming vs 40 Hz, threads={t}", f"{ms_plus:.2f} ms/frame",
+               cols[t]["plus x 40 Hz"], ">= 1")
 
 
 if __name__ == "__main__":

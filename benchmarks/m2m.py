@@ -5,12 +5,10 @@ Run: python benchmarks/m2m.py [--size 256] [--widths 8,16] [--threads N] [--quic
 --quick: 5 training steps and 64 images)
 
 Rows per generator width: training steps/s (batch 16, one optimiser step each, the loss with
---change-share / --change-per-example and data pipeline of stages.m2m.train included),
+--change-share and the data pipeline of stages.m2m.train included),
 translated images/s with the one-step generator and with the 4-step sampler (batch 64,
 stages.m2m.model.Translator, uint8 in and out); then flow-warp images/s (stages.m2m.flow on
-synthetic deformed marker images), the taxel redraw's images/s (stages.markers.uskin.redraw
-of 3-axis uSkin images with moved and grown dots, as m2m.redraw_taxels applies it after a
-translation) and InceptionV3 feature images/s (stages.imagemetrics, batch 32).  Wall time
+synthetic deformed marker images) and InceptionV3 feature images/s (stages.imagemetrics, batch 32).  Wall time
 and, in brackets, CPU time of the process: on a shared machine the CPU column is the one to
 compare.
 """
@@ -75,8 +73,6 @@ def main():
     ap.add_argument("--train-steps", type=int, default=20)
     ap.add_argument("--change-share", type=float, default=0.1,
                     help="the loss's change share (0.1: the default profile's fine-tune)")
-    ap.add_argument("--change-per-example", type=float, default=0.5,
-                    help="the loss's per-example blend (0.5: the default profile's fine-tune)")
     ap.add_argument("--images", type=int, default=256)
     ap.add_argument("--quick", action="store_true", help="5 training steps and 64 images")
     args = ap.parse_args()
@@ -98,8 +94,7 @@ def main():
         batches = PairBatches(images, np.stack(refs), seed=0)
         fit(net, cfg, batches, steps=2, batch_size=16, lr=1e-3, seed=0)          # warm-up
         train = timed(lambda: fit(net, cfg, batches, steps=args.train_steps, batch_size=16, lr=1e-3,
-                                  seed=0, change_share=args.change_share,
-                                  change_per_example=args.change_per_example))
+                                  seed=0, change_share=args.change_share))
         tr = Translator(cfg, state_arrays(net))
         tr.translate(src[:64], refs[0], refs[1])                                  # warm-up
         one = timed(lambda: tr.translate(src, refs[0], refs[1]), repeat=2)
@@ -113,14 +108,6 @@ def main():
     fw = timed(lambda: [warp(refs[1], flow.field(im)) for im in src], repeat=2)
     print(f"flow-warp img/s             {rate(n, fw)}")
     record("m2m", f"flow-warp img/s, {size}px", plain_rate(n, fw), None)
-    from stages.markers.uskin import MID_SCALE, redraw, signal_to_marker
-    base = np.full((16, 3), MID_SCALE)
-    raw = base + np.random.default_rng(0).normal(0, 3000, (n, 16, 3)).clip(-3000, None)
-    settings = {"size": [size, size], "s_xy": 20000.0, "base_area": 4.01}
-    taxel = signal_to_marker(raw, base, size=(size, size), s_xy=20000.0)
-    rd = timed(lambda: redraw(taxel, settings), repeat=2)
-    print(f"taxel redraw img/s          {rate(n, rd)}")
-    record("m2m", f"taxel redraw img/s, {size}px", plain_rate(n, rd), None)
     inception_features(src[:4])                                                   # load + warm-up
     feats = timed(lambda: inception_features(src[:64], batch=32))
     print(f"InceptionV3 features img/s  {rate(64, feats)}")

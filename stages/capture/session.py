@@ -446,8 +446,8 @@ def capture_calibration(*, trajectory: Mapping, sensor: str, spec: Mapping, devi
     compensation reads this sensor's own force-depth curves (stages.force.compensation) where
     `calibrate[sensor]` would compute its twin's.
 
-    `trajectory` is the calibration trajectory (the flat punch to the trajectory's deepest point
-    and back, and its shear leg), pressed every frame to the sensor's max_depth_mm (`spec`, its
+    `trajectory` is the calibration trajectory (the calibration indenter to the trajectory's
+    deepest point and back), pressed every frame to the sensor's max_depth_mm (`spec`, its
     sensors catalogue entry), as calibrate presses its twin.  `devices`: the robot and an F/T
     sensor (a camera or skin, if listed, is recorded too but not needed).  `session`
     (CALIBRATION_SESSION): name (staging file capture-<name>.h5; default <sensor>-calibration),
@@ -455,13 +455,9 @@ def capture_calibration(*, trajectory: Mapping, sensor: str, spec: Mapping, devi
     capture's.
 
     Returns capture's arrays (force, depth, normalised_depth = depth / max_depth_mm, phase,
-    shift, ...) with attrs telling the compensation the contact: calibration true, indenter (the
-    trajectory's), max_depth_mm, and from `spec` pad_mm, curvature_radius_mm, spacing_mm
-    (compensation "contact" computes contact areas on that grid) and mu, the friction
-    coefficient of its catalogue material (`materials`; the capture does not measure it), as
-    calibrate records them for the twin.
+    shift, ...) with attrs: calibration true, indenter (the trajectory's), max_depth_mm and
+    pad_mm, as calibrate records them for the twin (`materials` drives only the emulators).
     """
-    from stages.sim.sensors import material_of
     unknown = set(session or {}) - set(CALIBRATION_SESSION)
     if unknown:
         raise InputError(f"capture_calibration[{sensor}]: unknown session setting(s) {', '.join(sorted(unknown))} "
@@ -471,7 +467,7 @@ def capture_calibration(*, trajectory: Mapping, sensor: str, spec: Mapping, devi
     if not any(d in devices for d in FORCE_DEVICES):
         raise InputError(f"capture_calibration[{sensor}]: devices {devices} read no force: add one of "
                          f"{' / '.join(FORCE_DEVICES)}")
-    missing = [k for k in ("max_depth_mm", "pad_mm", "spacing_mm", "material") if k not in spec]
+    missing = [k for k in ("max_depth_mm", "pad_mm") if k not in spec]
     if missing:
         raise InputError(f"capture_calibration[{sensor}]: its sensors entry lacks {', '.join(missing)}")
     missing = [k for k in ("depth", "indenters", "indenter_id", "contact_id") if k not in trajectory]
@@ -481,7 +477,6 @@ def capture_calibration(*, trajectory: Mapping, sensor: str, spec: Mapping, devi
     deepest = float(np.max(depth)) if depth.size else 0.0
     if not deepest > 0:
         raise InputError(f"capture_calibration[{sensor}]: the calibration trajectory never presses (deepest {deepest} mm)")
-    mu = material_of(spec, materials)["mu"]
     names = np.asarray(trajectory["indenters"]).astype(str)
     indenter = str(names[np.asarray(trajectory["indenter_id"])[0]])
     max_depth = float(spec["max_depth_mm"])
@@ -496,7 +491,5 @@ def capture_calibration(*, trajectory: Mapping, sensor: str, spec: Mapping, devi
                                staging_dir=staging_dir, emulate=emulate, session=run,
                                indenters=indenters, spec=spec, materials=materials)
     final["attrs"].update({"calibration": True, "indenter": indenter, "max_depth_mm": max_depth,
-                           "pad_mm": [float(v) for v in spec["pad_mm"]],
-                           "curvature_radius_mm": float(spec.get("curvature_radius_mm", 0.0)),
-                           "spacing_mm": float(spec["spacing_mm"]), "mu": mu})
+                           "pad_mm": [float(v) for v in spec["pad_mm"]]})
     return final

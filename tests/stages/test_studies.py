@@ -9,16 +9,18 @@ def test_group_means_average_each_groups_pairs():
                "material/r10_r6/genforce/mae_fz": 0.5, "material/r6_r10/oracle/r2_fz": 0.75,
                "material/mean/genforce/mae_fz": 1.5, "homo/r6_r10/genforce/mae_fz": 9.0}
     groups = {"hard_to_soft": [["r6", "r10"], ["r6", "r18"]], "soft_to_hard": [["r10", "r6"]]}
+    metrics["material_val/r6_r18/genforce/mae_fz"] = 4.0          # the validation split, alike
     out = group_means(metrics, "material", groups)
     assert out == {"material/hard_to_soft/genforce/mae_fz": pytest.approx(2.0),
                    "material/hard_to_soft/oracle/r2_fz": pytest.approx(0.75),
-                   "material/soft_to_hard/genforce/mae_fz": pytest.approx(0.5)}
+                   "material/soft_to_hard/genforce/mae_fz": pytest.approx(0.5),
+                   "material_val/hard_to_soft/genforce/mae_fz": pytest.approx(4.0)}
 
 
 def test_transfer_study_keeps_its_parts_timings_out_of_the_content(monkeypatch):
     """image_study reports its seconds; in the study they belong to the provenance ("timing"),
     or every re-run would write a different artifact and never cut off downstream."""
-    import stages.force.nodes as force_nodes
+    import stages.force.study as force_study_module
     import stages.m2m.nodes as m2m_nodes
     from stages.studies import transfer_study
     seen = {}
@@ -33,10 +35,10 @@ def test_transfer_study_keeps_its_parts_timings_out_of_the_content(monkeypatch):
                                                                         "s/b_a/genforce/mae_total": 1.5},
                 "attrs": {"study": "s"}}
     monkeypatch.setattr(m2m_nodes, "image_study", image_study)
-    monkeypatch.setattr(force_nodes, "force_study", force_study)
+    monkeypatch.setattr(force_study_module, "force_study", force_study)
     out = transfer_study(study="s", groups={"one": [["a", "b"]], "two": [["b", "a"], ["a", "b"]]},
                          features={}, translated={}, warped={}, own={}, transfer={}, markers={"a": "A"},
-                         test_indenters=["x"], kid_subset=2, trace_frames=10)
+                         test_indenters=["x"], val_indenters=["y"], kid_subset=2, trace_frames=10)
     assert seen["image_pairs"] == [["a", "b"], ["b", "a"]]          # a pair in two groups, once
     assert seen["markers"] == {"a": "A"}                           # the motion errors' truth
     assert out["images"] == {"fid": [[1.0]]} and out["force"] == {"mae": [[0.5]]}

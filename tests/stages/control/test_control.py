@@ -291,16 +291,15 @@ def test_study_node_loads_the_model_artifact(monkeypatch):
         calls.append((artifact, prefix))
         return predictor
 
-    from stages.force.model import MeanPredictor
     fake = type(sys)("stages.force.model")
-    fake.load_predictor, fake.MeanPredictor = load_predictor, MeanPredictor
+    fake.load_predictor = load_predictor
     monkeypatch.setitem(sys.modules, "stages.force.model", fake)
     threads = torch.get_num_threads()
-    artifact = {"genforce_comp/weights": np.zeros(3)}
+    artifact = {"genforce_plus/weights": np.zeros(3)}
     out = control_study(model=artifact, objects=DEFAULT_OBJECTS, grasp=["potato_chip"], slip=[],
                         sensor=SENSOR, material=MATERIAL, size=(64, 64), duration_s=2.0, pull={},
                         seed=0, twin=TWIN)
-    assert calls == [(artifact, "genforce_comp")] and out["attrs"]["predictor"] == "genforce_comp"
+    assert calls == [(artifact, "genforce_plus")] and out["attrs"]["predictor"] == "genforce_plus"
     assert torch.get_num_threads() == threads
     assert predictor.references[0].shape == (64, 64)           # the twin's no-contact image
     # a model stuck at 2 N (tared to 0 before contact) never feels the chip and crushes it
@@ -319,38 +318,6 @@ class ContactPredictor:
 
     def step(self, image):
         return np.array([0.0, 0.0, -self.gain * 100 * np.mean(image != self.reference)], np.float32)
-
-
-def test_study_node_reads_the_mean_of_its_members(monkeypatch):
-    """With members (transfer_seed artifacts) the controllers read the mean of all the models:
-    members of gain 1 and 5 around a model of gain 3 run exactly as that model alone (3 is
-    their mean), and they are loaded in seed order."""
-    pytest.importorskip("torch")
-    from stages.force.model import MeanPredictor
-    loaded = []
-
-    def load_predictor(artifact, prefix="genforce_comp"):
-        loaded.append(artifact["gain"])
-        return ContactPredictor(artifact["gain"])
-
-    fake = type(sys)("stages.force.model")
-    fake.load_predictor, fake.MeanPredictor = load_predictor, MeanPredictor
-    monkeypatch.setitem(sys.modules, "stages.force.model", fake)
-    kw = dict(objects=DEFAULT_OBJECTS, grasp=["grape"], slip=[], sensor=SENSOR, material=MATERIAL,
-              size=(64, 64), duration_s=1.5, pull={}, seed=0, twin=TWIN)
-    members = {"2": {"gain": 5.0, "attrs": {"seed": 2}}, "1": {"gain": 1.0, "attrs": {"seed": 1}}}
-    mean = control_study(model={"gain": 3.0}, members=members, **kw)
-    alone = control_study(model={"gain": 3.0}, **kw)
-    assert loaded == [3.0, 1.0, 5.0, 3.0]
-    assert mean["attrs"]["models"] == 3 and mean["attrs"]["member_seeds"] == [1, 2]
-    assert alone["attrs"]["models"] == 1 and alone["attrs"]["member_seeds"] == []
-    np.testing.assert_allclose(mean["grasp"]["grape"]["force_pred"], alone["grasp"]["grape"]["force_pred"],
-                               rtol=1e-5, atol=1e-6)
-    assert mean["metrics"] == pytest.approx(alone["metrics"])
-    # the model of gain 1 alone reads a third of the force and grasps otherwise
-    low = control_study(model={"gain": 1.0}, **kw)
-    assert low["metrics"]["control/grasp/grape/force_error_N"] != pytest.approx(
-        alone["metrics"]["control/grasp/grape/force_error_N"], abs=1e-3)
 
 
 def test_catalogue_entries_are_checked():
@@ -459,15 +426,14 @@ def test_control_node_puts_the_target_skin_on_the_fingers(monkeypatch):
     pytest.importorskip("torch")
     import stages.control.nodes as nodes
     from stages.common import InputError
-    from stages.force.model import MeanPredictor
     loaded = []
 
-    def load_predictor(artifact, prefix="genforce_comp"):
+    def load_predictor(artifact, prefix="genforce_plus"):
         loaded.append((artifact["gain"], prefix))
         return ContactPredictor(artifact["gain"])
 
     fake = type(sys)("stages.force.model")
-    fake.load_predictor, fake.MeanPredictor = load_predictor, MeanPredictor
+    fake.load_predictor = load_predictor
     monkeypatch.setitem(sys.modules, "stages.force.model", fake)
     markers = gelsight_pattern("A-II")
     patterns = {f"markers/gelsight-A-II/{k}": np.asarray(v) for k, v in
@@ -484,7 +450,7 @@ def test_control_node_puts_the_target_skin_on_the_fingers(monkeypatch):
               segmentation=SEGMENTATION)
     out = nodes.control_node(model={"gain": 3.0}, supervised={"gain": 1.0},
                              model_pair=["gelsight-A-I", "gelsight-A-II"], **kw)
-    assert loaded == [(3.0, "genforce_comp"), (1.0, "weights")]
+    assert loaded == [(3.0, "genforce_plus"), (1.0, "weights")]
     render_seed = zlib.crc32(b"gelsight-A-II")                 # GELSIGHT_SKIN has no `seed`
     assert out["attrs"]["camera"] == {"skin": "gelsight-A-II", "look": "gelsight",
                                       "reference_seed": render_seed}

@@ -7,7 +7,7 @@ import pytest
 import torch
 from sklearn.metrics import mean_absolute_error, r2_score
 
-from stages.common import InputError, torch_device
+from stages.common import InputError
 from stages.force import plus
 from stages.force.compensation import Curves, compensate, curves_from_calibration, fit_curves, label_scale, loading_mask
 from stages.force.data import contact_runs, predict_rows

@@ -160,24 +160,6 @@ def test_calibration_trajectory():
     np.testing.assert_allclose(tr["normalised_depth"].max(), 1.0)
 
 
-def test_calibration_trajectory_shear_leg():
-    tr = calibration_trajectory(n_steps=5, repetitions=2, shear_mm=1.0, shear_steps=4)
-    _frame_fields_consistent(tr)
-    plain = calibration_trajectory(n_steps=5, repetitions=2)
-    rep = tr["contact_id"] < 2                                  # the repetitions are unchanged
-    for key in ("depth", "phase", "shift", "position", "loading"):
-        np.testing.assert_array_equal(tr[key][rep], plain[key])
-    leg = tr["contact_id"] == 2                                 # press, shear out and back
-    assert tr["phase"][leg].tolist() == [0] * 5 + [1] * 4 + [2] * 4
-    np.testing.assert_allclose(tr["shift"][leg, 0], [0] * 5 + [0.25, 0.5, 0.75, 1.0, 0.75, 0.5, 0.25, 0.0])
-    np.testing.assert_allclose(tr["depth"][leg], [0.28, 0.56, 0.84, 1.12] + [1.4] * 9)
-    assert np.all(tr["shift"][:, 1] == 0)
-    np.testing.assert_allclose(tr["position"][:, 0], tr["shift"][:, 0])  # indenter = point + shift
-    np.testing.assert_array_equal(tr["loading"], tr["phase"] != 3)
-    with pytest.raises(ValueError, match="shear_mm"):
-        calibration_trajectory(shear_mm=-1.0)
-
-
 @pytest.mark.parametrize("make,kwargs,message", [
     (sim_grid_trajectory, {"indenters": ["sphere", "spere"]}, "unknown indenter 'spere' (known: cone, "),
     (sim_grid_trajectory, {"indenters": []}, "the trajectory names no indenters"),
