@@ -16,6 +16,7 @@ from typing import Any
 import yaml
 
 from pipeline.errors import PipelineError
+from pipeline.extends import resolve as resolve_extends
 
 _KEY = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*(\.[A-Za-z0-9_\-]+)*$")
 
@@ -141,14 +142,36 @@ def _lookup(tree: dict, dotted: str) -> Any:
     return cur
 
 
-def _merge(schema: dict, base: dict, overlay: dict, prefix: str, where_of) -> None:
+_MISSING = object()
+
+
+def _inherited(root: dict, key: str) -> Any:
+    """The value `key` has once `extends` is resolved (an entry's key it inherits), or _MISSING."""
+    try:
+        return _lookup(resolve_extends(root), key)
+    except (KeyError, TypeError, PipelineError):
+        return _MISSING
+
+
+def _merge(schema: dict, base: dict, overlay: dict, prefix: str, where_of, root: dict | None = None) -> None:
+    """Overlay values onto base, each checked against the type it has there; a key an entry
+    inherits through `extends` may be set on the entry itself."""
     for k, v in overlay.items():
         key = f"{prefix}.{k}" if prefix else str(k)
         where = where_of(key)
-        if not isinstance(base, dict) or k not in base:
+        if not isinstance(base, dict):
             raise _unknown(key, schema, where)
-        if isinstance(base[k], dict) and isinstance(v, dict):
-            _merge(schema, base[k], v, key, where_of)
+        if k not in base:
+            inherited = _MISSING if root is None else _inherited(root, key)
+            if inherited is _MISSING:
+                raise _unknown(key, schema, where)
+            if isinstance(inherited, dict) and isinstance(v, dict):
+                base[k] = {}
+                _merge(schema, base[k], v, key, where_of, root)
+            else:
+                base[k] = _check_value(key, inherited, v, where)
+        elif isinstance(base[k], dict) and isinstance(v, dict):
+            _merge(schema, base[k], v, key, where_of, root)
         else:
             base[k] = _check_value(key, base[k], v, where)
 
@@ -175,7 +198,8 @@ def parse_override(text: str) -> tuple[str, Any]:
 
 def load(base_file: Path, profile: str | None = None, overrides: list[str] = (),
          profiles_dir: Path | None = None) -> dict:
-    """params.yaml, then params/<profile>.yaml, then -p KEY=VALUE overrides, all validated."""
+    """params.yaml, then params/<profile>.yaml, then -p KEY=VALUE overrides, all validated;
+    then every `extends` resolved (pipeline.extends)."""
     schema, _ = _load_yaml(base_file)
     params = copy.deepcopy(schema)
     if profile and profile != "default":
@@ -185,7 +209,7 @@ def load(base_file: Path, profile: str | None = None, overrides: list[str] = (),
             known = sorted(p.stem for p in pdir.glob("*.yaml")) if pdir.is_dir() else []
             raise PipelineError(f"unknown profile '{profile}' (known: {', '.join(['default'] + known)})")
         overlay, lines = _load_yaml(pfile)
-        _merge(schema, params, overlay, "", lambda k: f"{pfile}:{lines.get(k, '?')}")
+        _merge(schema, params, overlay, "", lambda k: f"{pfile}:{lines.get(k, '?')}", params)
     for text in overrides:
         key, value = parse_override(text)
         parent, _, leaf = key.rpartition(".")
@@ -193,10 +217,7 @@ def load(base_file: Path, profile: str | None = None, overrides: list[str] = (),
             holder = _lookup(params, parent)
         except (KeyError, TypeError):
             holder = None
-        if not isinstance(holder, dict) or leaf not in holder:
+        if not isinstance(holder, dict):
             raise _unknown(key, schema, f"-p {text}")
-        if isinstance(holder[leaf], dict) and isinstance(value, dict):
-            _merge(schema, holder[leaf], value, key, lambda k: f"-p {text}")
-        else:
-            holder[leaf] = _check_value(key, holder[leaf], value, f"-p {text}")
-    return params
+        _merge(schema, holder, {leaf: value}, parent, lambda k: f"-p {text}", params)
+    return resolve_extends(params)

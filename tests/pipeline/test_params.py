@@ -86,3 +86,26 @@ def test_unknown_profile_lists_known(base):
     overlay(base, "seed: 2\n", "paper")
     with pytest.raises(PipelineError, match=r"unknown profile 'nope' \(known: default, paper\)"):
         P.load(base, "nope")
+
+
+def test_extends_resolves_after_the_profile_and_overrides(tmp_path):
+    """An entry with `extends` is its sibling deep-merged with its own keys, resolved after the
+    profile and -p overrides, so a change to the base reaches every entry that extends it."""
+    f = tmp_path / "params.yaml"
+    f.write_text("sensors:\n"
+                 "  base: {grid: [65, 65], look: {kind: gel, noise: 3.0}, material: r10}\n"
+                 "  mid: {extends: base, material: r6}\n"
+                 "  leaf: {extends: mid, look: {noise: 1.0}}\n")
+    (tmp_path / "params").mkdir()
+    (tmp_path / "params" / "ci.yaml").write_text("sensors:\n  base: {grid: [33, 33]}\n")
+    p = P.load(f, "ci", ["sensors.leaf.material=r18"])
+    assert p["sensors"]["mid"] == {"grid": [33, 33], "look": {"kind": "gel", "noise": 3.0}, "material": "r6"}
+    assert p["sensors"]["leaf"] == {"grid": [33, 33], "look": {"kind": "gel", "noise": 1.0}, "material": "r18"}
+    assert p["sensors"]["base"] == {"grid": [33, 33], "look": {"kind": "gel", "noise": 3.0}, "material": "r10"}
+    f.write_text("sensors:\n  a: {extends: b, x: 1}\n  b: {extends: a, x: 2}\n")
+    with pytest.raises(PipelineError, match=r"param 'sensors.b.extends': entries extend each other in a loop "
+                                             r"\(a -> b -> a\)"):
+        P.load(f)
+    f.write_text("sensors:\n  a: {extends: nosuch, x: 1}\n  b: {x: 2}\n")
+    with pytest.raises(PipelineError, match=r"param 'sensors.a.extends' names 'nosuch', not an entry beside it \(b\)"):
+        P.load(f)
