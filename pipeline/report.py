@@ -8,7 +8,9 @@ script, no external URL. It is organised by conventions visible in the data only
   method column groups x metric columns; the row `mean` goes last, the best method per
   metric is shaded); other names are listed as they are;
 - datasets under "figures/" hold PNG bytes; they are written to `<out>/figures/` and shown
-  with the namespaces of their node, or under "Data" for nodes without metrics.
+  with the namespaces of their node, or under "Data" for nodes without metrics;
+- an artifact attribute `report_tables` (a list of {"title", "header", "rows"}) is a node's
+  answer in brief: those tables open the page, under "Summary".
 """
 from __future__ import annotations
 
@@ -78,6 +80,7 @@ class NodeView:
     record: dict | None
     provenance: dict = field(default_factory=dict)
     figures: list[Figure] = field(default_factory=list)
+    tables: list[dict] = field(default_factory=list)   # attrs report_tables
 
     @property
     def metrics(self) -> dict[str, float]:
@@ -209,6 +212,9 @@ def _read(planned, store, fig_dir: Path, warnings: list[str]) -> list[NodeView]:
         try:
             with Artifact(store.path(p.key)) as a:
                 view.provenance = a.provenance
+                tables = a.attrs.get("report_tables")
+                if isinstance(tables, list):
+                    view.tables = [t for t in tables if isinstance(t, dict) and "rows" in t]
                 for name in a:
                     if not name.startswith("figures/"):
                         continue
@@ -343,6 +349,19 @@ def _study_html(ns: str, metrics: dict[str, float], nodes: list[NodeView], owner
     return "".join(parts) + "</section>"
 
 
+def _summary_html(views: list[NodeView]) -> str:
+    """The tables nodes publish (attrs report_tables), in plan order: the page's first section."""
+    parts = []
+    for v in views:
+        for t in v.tables:
+            head = "".join(f"<th>{esc(h)}</th>" for h in t.get("header", []))
+            body = "".join("<tr>" + "".join(f"<td>{esc(c)}</td>" for c in row) + "</tr>" for row in t["rows"])
+            parts.append(f"<h3>{esc(t.get('title', v.name))}</h3><div class='scroll'><table class='summary'>"
+                         f"<thead><tr>{head}</tr></thead><tbody>{body}</tbody></table></div>"
+                         f"<p class='meta'>from <a href='#{esc(slug('prov', v.name))}'>{esc(v.name)}</a></p>")
+    return f"<section id='summary'><h2>Summary</h2>{''.join(parts)}</section>" if parts else ""
+
+
 def _status_html(views: list[NodeView]) -> str:
     rows = []
     for v in views:
@@ -423,6 +442,11 @@ def write(planned, store, out_dir: Path, *, title: str = "Pipeline report", info
             data_nodes.setdefault(v.node, []).append(v)
 
     sections, toc = [], []
+    summary = _summary_html(views)
+    if summary:
+        sections.append(summary)
+        toc.append(f"<li><a href='#summary'>Summary</a> <span class='meta'>"
+                   f"{_plural(sum(len(v.tables) for v in views), 'table')}</span></li>")
     for ns in order:
         mine = {k: x for k, x in metrics.items() if namespace(k) == ns}
         n_fig = sum(len(v.figures) for v in members[ns])

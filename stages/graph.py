@@ -210,3 +210,9 @@ GRAPH.node("control", "stages.control.nodes:control_node",
                    "reference_seed": "control.reference_seed",
                    "tolerance_N": "control.tolerance_N"},
            description="study control (paper Fig. 7): grasping at a target force, slip avoidance")
+
+# -- the answer first: the studies' test figures beside the paper's ------------------------
+GRAPH.node("summary", "stages.summary:summary",
+           inputs={"homo": "homo", "material": "material", "hetero": "hetero", "sim_m2m": "sim_m2m"},
+           description="the studies' results on the test split beside the paper's figures, and the "
+                       "paper's targets (the report's first tables; docs/results.md)")

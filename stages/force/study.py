@@ -236,9 +236,12 @@ def _ablation(studies, transfer, seeds, translated, markers, val_indenters, trai
         metrics.update(ablation_metrics(study, table, additions))
         per_study[study] = table
     from stages.force.figures import ablation_png
+    from stages.summary import ablation_table, markdown
+    table = ablation_table(metrics)
     return {"metrics": metrics,
             **{f"mae/{study}/{v}": table[v] for study, table in per_study.items() for v in table},
             "figures": {"ablation": ablation_png(metrics, list(studies), additions)},
-            "attrs": {"studies": {k: [list(p) for p in v] for k, v in studies.items()},
+            "attrs": {"report_tables": [table], "markdown": markdown([table]),
+                      "studies": {k: [list(p) for p in v] for k, v in studies.items()},
                       "additions": list(additions), "val_indenters": val_indenters,
                       "seeds": len(next(iter(per_study.values()))["all"]) if per_study else 0}}
