@@ -81,6 +81,12 @@ Which curve a frame uses: phase 0 (press) loading; phases 1 and 2 (shear out and
 constant depth right after pressing) loading too, since the elastomer has not been unloaded
 (the simulation twin uses the loading stiffness there); phase 3 (release) unloading.  A
 calibration's own shear leg is left out of its curves.
+
+The authors' released curves (stages.capture.authors_calibration) are polynomials of any
+degree, np.poly1d's coefficients as their files hold them, and need not pass through the
+origin: for those r(d) = P_target(k d) / P_source(d) as it stands (their loaders' ratio), and
+1 where either curve is not positive (a fitted curve's small negative constant near d = 0
+would otherwise flip or blow up the labels).
 """
 from __future__ import annotations
 
@@ -96,9 +102,10 @@ MODES = ("normal", "axes", "contact")
 
 @dataclass(frozen=True)
 class Curves:
-    """One sensor's calibration: polynomial coefficients (a, b, 0), highest power first
-    (np.polyval order), of |Fz| against normalised depth for each branch, and the shear gain
-    (|F_xy| / |F_z| on the shear leg; None without one)."""
+    """One sensor's calibration: polynomial coefficients, highest power first (np.polyval
+    order), of |Fz| against normalised depth for each branch ((a, b, 0) when fitted here; any
+    degree from the authors' files), and the shear gain (|F_xy| / |F_z| on the shear leg; None
+    without one)."""
     loading: tuple[float, float, float]
     unloading: tuple[float, float, float]
     shear_gain: float | None = None
@@ -162,7 +169,11 @@ def fit_curves(normalised_depth, force, loading, phase=None) -> Curves:
 def curves_from_calibration(calibration: Mapping) -> Curves:
     """Curves of a calibrate[sensor] artifact, a capture_calibration[sensor] one or a dict with
     the same arrays: normalised_depth, force, and loading or phase (loading_mask of it; a
-    captured calibration records the phase only)."""
+    captured calibration records the phase only).  An authors_calibration[sensor] artifact
+    holds its curves' coefficients (loading_coefficients, unloading_coefficients): those."""
+    if "loading_coefficients" in calibration:
+        return Curves(tuple(float(v) for v in np.asarray(calibration["loading_coefficients"]).ravel()),
+                      tuple(float(v) for v in np.asarray(calibration["unloading_coefficients"]).ravel()))
     loading, phase = _calibration_phases(calibration)
     return fit_curves(np.asarray(calibration["normalised_depth"]), np.asarray(calibration["force"]),
                       loading, phase)
@@ -216,11 +227,19 @@ def label_scale(normalised_depth, loading, source: Curves, target: Curves, eps: 
     if not (np.isfinite(k) and k > 0):
         raise ValueError(f"label_scale: depth_ratio must be a positive number, got {depth_ratio!r}")
 
-    def slope(c: Curves, x):
-        (al, bl, _), (au, bu, _) = c.loading, c.unloading
-        return np.maximum(np.where(loading, al * x + bl, au * x + bu), eps)
+    if all(c.loading[-1] == 0 and c.unloading[-1] == 0 for c in (source, target)):
+        def slope(c: Curves, x):                            # P(x) / x: through the origin
+            return np.maximum(np.where(loading, np.polyval(c.loading[:-1], x),
+                                       np.polyval(c.unloading[:-1], x)), eps)
 
-    return k * slope(target, k * d) / slope(source, d)     # k = 1: exact, x * 1.0 == x
+        return k * slope(target, k * d) / slope(source, d)     # k = 1: exact, x * 1.0 == x
+
+    def value(c: Curves, x):
+        return np.where(loading, np.polyval(c.loading, x), np.polyval(c.unloading, x))
+
+    top, bottom = value(target, k * d), value(source, d)
+    ok = (top > eps) & (bottom > eps)
+    return np.where(ok, top / np.where(ok, bottom, 1.0), 1.0)
 
 
 def shear_ratio(source: Curves, target: Curves, mode: str, depth_ratio: float = 1.0) -> float:
@@ -357,10 +376,11 @@ def curves_figure(calibrations: Mapping[str, tuple[Mapping, Curves]], title: str
     grid = np.linspace(0.0, 1.0, 50)
     for k, (name, (cal, curves)) in enumerate(calibrations.items()):
         colour = f"C{k}"
-        d, f = np.asarray(cal["normalised_depth"]), np.abs(np.asarray(cal["force"])[:, 2])
-        load, unload = _branches(*_calibration_phases(cal))
-        ax.plot(d[load], f[load], ".", color=colour, ms=3, alpha=0.6)
-        ax.plot(d[unload], f[unload], "x", color=colour, ms=3, alpha=0.6)
+        if "normalised_depth" in cal:                   # the authors' curves come without points
+            d, f = np.asarray(cal["normalised_depth"]), np.abs(np.asarray(cal["force"])[:, 2])
+            load, unload = _branches(*_calibration_phases(cal))
+            ax.plot(d[load], f[load], ".", color=colour, ms=3, alpha=0.6)
+            ax.plot(d[unload], f[unload], "x", color=colour, ms=3, alpha=0.6)
         ax.plot(grid, np.polyval(curves.loading, grid), "-", color=colour, label=f"{name} loading")
         ax.plot(grid, np.polyval(curves.unloading, grid), "--", color=colour, label=f"{name} unloading")
     ax.set(xlabel="normalised depth", ylabel="|Fz| (N)", title=title)
