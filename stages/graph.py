@@ -9,7 +9,7 @@ GRAPH = Graph()
 
 # -- simulation twin: shapes and where they press ---------------------------------------
 GRAPH.node("indenters", "stages.sim.indenters:indenter_set",
-           params={"names": "indenters.names"},
+           params={"names": "indenters.names", "stl_dir": "indenters.stl_dir", "stl_tip": "indenters.stl_tip"},
            description="the 18 paper indenters + calibration prism, cone and flat punch as watertight meshes")
 GRAPH.node("sim_trajectory", "stages.sim.trajectory:sim_grid_trajectory",
            params={"positions_mm": "sim_trajectory.positions_mm", "depths_mm": "sim_trajectory.depths_mm",
