@@ -35,12 +35,14 @@ _REF = re.compile(r"^(?P<node>[A-Za-z_][A-Za-z0-9_]*)(\[(?P<sel>[^\]]*)\])?$")
 @dataclass(frozen=True)
 class Listing:
     """Grid values listed at plan time by `func` ("module:function", imported by path like a
-    node's function), called with the values of `params` (argument -> dotted params key) as
-    keyword arguments; it returns the list.  It runs whenever the graph expands (every verb,
-    `status` included), so it must be fast and import nothing heavy: list folders, not read
-    data.  An exception whose class sets `user_error = True` is reported as one line (exit 2)."""
+    node's function), called with the values of `params` (argument -> dotted params key) and
+    the constants `args` as keyword arguments; it returns the list.  It runs whenever the graph
+    expands (every verb, `status` included), so it must be fast and import nothing heavy: list
+    folders, not read data.  An exception whose class sets `user_error = True` is reported as
+    one line (exit 2)."""
     func: str
     params: Mapping[str, str] = field(default_factory=dict)
+    args: Mapping[str, Any] = field(default_factory=dict)
 
     def describe(self) -> str:
         keys = ", ".join(self.params.values())
@@ -235,7 +237,8 @@ class Graph:
                     f"{' / '.join(grids) or 'its grid'} a typo?") from None
             keys.append(dotted)
         keys += [k.strip() for spec in node.grid.values() if isinstance(spec, str) for k in spec.split("+")]
-        keys += [k for spec in node.grid.values() if isinstance(spec, Listing) for k in spec.params.values()]
+        listed = [k for spec in node.grid.values() if isinstance(spec, Listing) for k in spec.params.values()]
+        keys += [k for k in dict.fromkeys(listed) if k not in keys]
         inst = Instance(node, tuple(bindings), resolved, param_keys=keys)
         for arg, ref in node.inputs.items():
             try:  # templates use grid values and the instance's params: "{spec[source]}[skin={skin}]"
@@ -338,7 +341,7 @@ class Graph:
 
 def _listed(node: str, entry: str, spec: Listing, params: dict) -> list:
     """The values a Listing grid entry's function returns for these params."""
-    kwargs = {arg: P.get(params, key) for arg, key in spec.params.items()}
+    kwargs = {**spec.args, **{arg: P.get(params, key) for arg, key in spec.params.items()}}
     module, _, name = spec.func.partition(":")
     try:
         func = getattr(importlib.import_module(module), name)

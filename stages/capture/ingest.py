@@ -60,7 +60,6 @@ from stages.common import InputError
 from stages.sim.indenters import ALL_INDENTERS
 
 CHUNK = 64                      # frames per streamed chunk (a 480x640 mask is 300 kB unpacked)
-N_PAIRED = 4                    # last.csv's first three frames and 0000
 START_POSITION = 3              # 0000's place in the authors' list
 MAX_POINT = 10 ** 7             # contact numbers fit their digits of the frame key
 # com_hetero/data_loader.py: normalised = (top - z) / (top - bottom), per source sensor
@@ -324,7 +323,7 @@ def ingest(*, root: str, sensor: str, size, modulus_depth_mm: float = 1.0):
     reference, reference_from = _reference(dirs, contacts[0], size)
     return {"reference": reference, "indenters": names,
             "attrs": {"sensor": sensor, "set": dirs.set, "root": str(root), "contacts": len(contacts),
-                      "frames": n, "source_size": list(decoder.shape or SOURCE_SIZE), "size": list(size),
+                      "frames": n, "source_size": list(decoder.shape or SOURCE_SIZE), "image_size": list(size),
                       "skipped": skipped, "reference_from": reference_from,
                       "last_csv_dir": str(dirs.last_csv), "torque_units": "N m" if with_torque else "absent",
                       "jpg_frames": int(sum(int(c.suffix.sum()) for c in contacts)), **depth_attrs}}

@@ -199,7 +199,9 @@ LISTER = '''
 class Bad(ValueError):
     user_error = True
 
-def sensors(source, root):
+def sensors(source, root, prefix=""):
+    if prefix:
+        return [prefix + r for r in root.split(":")]
     if source == "none":
         return []
     if source == "bad":
@@ -225,12 +227,17 @@ def listing_graph(tmp_path, monkeypatch):
 
 
 def test_listing_grid_lists_instances_from_params(listing_graph):
+    from pipeline.graph import Listing
     inst = listing_graph.expand({"data": {"source": "authors", "root": "b:a"}})
     assert list(inst) == ["ingest[sensor=a]", "ingest[sensor=b]", "study"]
-    assert inst["ingest[sensor=b]"].param_keys == ["data.root", "data.source", "data.root"]
+    assert inst["ingest[sensor=b]"].param_keys == ["data.root", "data.source"]
     assert inst["study"].inputs["all"] == {"a": "ingest[sensor=a]", "b": "ingest[sensor=b]"}
     none = listing_graph.expand({"data": {"source": "none", "root": ""}})
     assert list(none) == ["study"] and none["study"].inputs["all"] == {}
+    g = Graph()
+    g.node("pairs", "m:p", grid={"s": Listing("lister_mod:sensors", {"root": "data.root"}, {"source": "",
+                                                                                       "prefix": "x"})})
+    assert list(g.expand({"data": {"root": "a:b"}})) == ["pairs[s=xa]", "pairs[s=xb]"]
     with pytest.raises(PipelineError, match=r"'ingest' has no instance for these params \(its grid "
                                             r"lister_mod:sensors\(data.source, data.root\) is empty\)"):
         listing_graph.select(none, ["ingest"])

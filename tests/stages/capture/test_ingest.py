@@ -163,6 +163,39 @@ def test_a_contact_without_forces_is_left_out_as_the_authors_do(dataset, tmp_pat
     assert final["attrs"]["skipped"] == ["wave/10"] and final["attrs"]["contacts"] == 5
 
 
+def test_npy_csv_last_files_are_read_first(dataset, tmp_path):
+    """training_utils.py looks in the sibling npy_csv/ folder before the image folder."""
+    root = tmp_path / "d"
+    shutil.copytree(dataset[0] / "training" / "homo", root / "training" / "homo")
+    img = root / "training/homo/img/npy/Array-I"
+    alt = root / "training/homo/img/npy_csv/Array-I"
+    for last in img.glob("*/*/last.csv"):
+        (alt / last.parent.relative_to(img)).mkdir(parents=True)
+        shutil.copy(last, alt / last.relative_to(img))
+    c = ordered(dataset[1]["Array-I"])[0]
+    n = c["n"]
+    (alt / c["indenter"] / str(c["point"]) / "last.csv").write_text(
+        "".join(f"C:\\GenForce\\{k:04d}.npy\r\n" for k in (1, 2, 3, n - 1)))     # Windows paths, CRLF
+    art, final = run(root, "Array-I", size=(48, 64))
+    np.testing.assert_array_equal(art["phase"][:n], [0, 0, 1, 2] + [3] * (n - 4))
+    assert np.flatnonzero(art["paired"][:n]).tolist() == [0, 1, 2, 3]
+    assert art["paired_position"][:4].tolist() == [3, 0, 1, 2]
+    assert final["attrs"]["last_csv_dir"] == str(alt)
+
+
+def test_ft_header_variants(tmp_path):
+    from stages.capture.authors_files import read_ft
+    path = tmp_path / "ft.csv"
+    path.write_bytes("\ufeffFx,Fy,Fz\r\n0.5,-0.25,-1.5\r\n".encode())       # BOM, CRLF, no units, no torques
+    force, torque = read_ft(path)
+    assert force.tolist() == [[0.5, -0.25, -1.5]] and torque is None
+    path.write_text("Fx(N),Fy(N),Fz(N),Tx(Nm),Ty(Nm),Tz(Nm)\n1,2,3,0.004,0.005,0.006\n")
+    assert read_ft(path)[1].tolist() == [[0.004, 0.005, 0.006]]
+    path.write_text("Fx(mN),Fy(N),Fz(N)\n1,2,3\n")
+    with pytest.raises(InputError, match=rf"^{path} header 'Fx\(mN\)': unit 'mn' is not N$"):
+        read_ft(path)
+
+
 # -------------------------------------------------------------------------------- bad input
 
 @pytest.fixture()
