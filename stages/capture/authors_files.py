@@ -194,9 +194,10 @@ def read_coefficients(path: Path) -> np.ndarray:
 
 
 def read_last(path: Path) -> list[int]:
-    """last.csv -> the frame numbers its four lines name (the basenames' NNNN)."""
+    """last.csv -> the frame numbers its lines name (the basenames' NNNN): four, or the three
+    M2M reads (their [:3]; the fourth, the end of the release, bounds nothing)."""
     entries = [ln for ln in _text_lines(path) if ln]
-    if len(entries) != 4:
+    if len(entries) not in (3, 4):
         raise InputError(f"{path} names {len(entries)} frame(s); expected 4, the last frame of "
                          "press, shear out, shear back and release")
     out = []

@@ -14,9 +14,9 @@ Per frame (N = all frames of the sensor):
   images       (N,H,W) uint8 0/255: the 480x640 mask area-resized to `size` (coverage >= 1/2)
   force        (N,3) float32 N, ft.csv's Fx, Fy, Fz as recorded (Fz < 0 pressing)
   torque       (N,3) float32 N m: ft.csv's Tx, Ty, Tz, recorded in N mm (only when every ft.csv has them)
-  phase        (N,) int8: 0 press, 1 shear out, 2 shear back, 3 release, from last.csv's four
-               motion ends e0 < e1 < e2 < e3: frames up to e0 press, up to e1 shear out, up to
-               e2 shear back, the rest release
+  phase        (N,) int8: 0 press, 1 shear out, 2 shear back, 3 release, from last.csv's
+               motion ends e0 < e1 < e2 (< e3): frames up to e0 press, up to e1 shear out, up to
+               e2 shear back, the rest release (a last.csv of three lines, all M2M reads, is taken)
   paired       (N,) bool: the four frames M2M pairs (training_utils.py PairedDatasetReal):
                last.csv's first three (end of press, of shear out, of shear back) and 0000
   paired_position (N,) int8: that list's position 0..3 (0000 is 3); -1 elsewhere
@@ -153,9 +153,9 @@ def _check_ends(ends: list[int], n: int, path: Path, folder: Path) -> None:
         if e >= n:
             raise InputError(f"{path} names frame {e:04d}, which {folder} does not hold "
                              f"(frames 0000-{n - 1:04d})")
-    if not (0 < ends[0] < ends[1] < ends[2] < ends[3]):
+    if not all(a < b for a, b in zip([0, *ends], ends)):
         raise InputError(f"{path} names frames {', '.join(f'{e:04d}' for e in ends)}; expected the "
-                         "four motions' last frames in order, the first after 0000")
+                         "motions' last frames in order, the first after 0000")
 
 
 def scan(dirs: SensorDirs) -> tuple[list[Contact], list[str]]:

@@ -175,7 +175,7 @@ def test_npy_csv_last_files_are_read_first(dataset, tmp_path):
     c = ordered(dataset[1]["Array-I"])[0]
     n = c["n"]
     (alt / c["indenter"] / str(c["point"]) / "last.csv").write_text(
-        "".join(f"C:\\GenForce\\{k:04d}.npy\r\n" for k in (1, 2, 3, n - 1)))     # Windows paths, CRLF
+        "".join(f"C:\\GenForce\\{k:04d}.npy\r\n" for k in (1, 2, 3)))     # Windows paths, CRLF, the 3 M2M reads
     art, final = run(root, "Array-I", size=(48, 64))
     np.testing.assert_array_equal(art["phase"][:n], [0, 0, 1, 2] + [3] * (n - 4))
     assert np.flatnonzero(art["paired"][:n]).tolist() == [0, 1, 2, 3]
@@ -260,9 +260,13 @@ def _break(kind, root):
         return "Array-I", f"{c}/last.csv names frame 0099, which {c} does not hold (frames 0000-{n - 1:04d})"
     if kind == "last.csv lines":
         lines = (c / "last.csv").read_text().splitlines()
-        (c / "last.csv").write_text("\n".join(lines[:3]) + "\n")
-        return "Array-I", (f"{c}/last.csv names 3 frame(s); expected 4, the last frame of press, shear out, "
+        (c / "last.csv").write_text("\n".join(lines[:2]) + "\n")
+        return "Array-I", (f"{c}/last.csv names 2 frame(s); expected 4, the last frame of press, shear out, "
                            "shear back and release")
+    if kind == "last.csv order":
+        lines = (c / "last.csv").read_text().splitlines()
+        (c / "last.csv").write_text("\n".join([lines[1], lines[0], *lines[2:]]) + "\n")
+        return "Array-I", f"{c}/last.csv names frames "
     if kind == "depth rows":
         inc = root / "training/hetero/depth/gelsight/cone/1/inc_z.csv"
         lines = inc.read_text().splitlines()
@@ -275,7 +279,7 @@ def _break(kind, root):
 
 
 BAD = ["missing frame", "truncated frame", "wrongly sized frame", "non-binary frame", "not a frame",
-       "truncated jpg", "jpg of another size", "ft.csv rows", "ft.csv header", "last.csv names a missing frame", "last.csv lines",
+       "truncated jpg", "jpg of another size", "ft.csv rows", "ft.csv header", "last.csv names a missing frame", "last.csv lines", "last.csv order",
        "depth rows"]
 
 
