@@ -12,13 +12,18 @@ Input references:
                            the remaining grid values ("b=2" or just "2" for one variable)
   "up[a=@params.key]"      gather the instances whose `a` is in that params list (keyed
                            by `a` too), so a node needs only the instances it reads
+
+A grid entry's values come from params (a key, or keys joined by " + "), a literal list, or
+a `Listing`: a light plan-time function named by import path that lists them from params
+values and the world they name (the folders of a dataset), e.g. the sensors a dataset holds.
 """
 from __future__ import annotations
 
 import difflib
+import importlib
 import re
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Mapping
 
 from pipeline import params as P
 from pipeline.errors import PipelineError
@@ -28,12 +33,29 @@ _REF = re.compile(r"^(?P<node>[A-Za-z_][A-Za-z0-9_]*)(\[(?P<sel>[^\]]*)\])?$")
 
 
 @dataclass(frozen=True)
+class Listing:
+    """Grid values listed at plan time by `func` ("module:function", imported by path like a
+    node's function), called with the values of `params` (argument -> dotted params key) and
+    the constants `args` as keyword arguments; it returns the list.  It runs whenever the graph
+    expands (every verb, `status` included), so it must be fast and import nothing heavy: list
+    folders, not read data.  An exception whose class sets `user_error = True` is reported as
+    one line (exit 2)."""
+    func: str
+    params: Mapping[str, str] = field(default_factory=dict)
+    args: Mapping[str, Any] = field(default_factory=dict)
+
+    def describe(self) -> str:
+        keys = ", ".join(self.params.values())
+        return f"{self.func}({keys})"
+
+
+@dataclass(frozen=True)
 class Node:
     name: str
     func: str
     inputs: dict[str, str] = field(default_factory=dict)
     params: dict[str, str] = field(default_factory=dict)
-    grid: dict[str, Any] = field(default_factory=dict)   # var -> params key or literal list
+    grid: dict[str, Any] = field(default_factory=dict)   # var -> params key(s), literal list or Listing
     version: str | None = None       # overrides the code fingerprint when set
     source: bool = False             # captured data: never re-run automatically
     on_demand: bool = False          # left out of the default targets: runs when named
@@ -113,6 +135,10 @@ class Graph:
         n = Node(name, func, dict(inputs or {}), dict(params or {}), dict(grid or {}),
                  version, source, on_demand, description)
         grid_vars = n.grid_vars
+        for entry, spec in n.grid.items():
+            if isinstance(spec, Listing) and ":" not in spec.func:
+                raise PipelineError(f"node '{name}' grid '{entry}': Listing func must be "
+                                    f"'module:function', got {spec.func!r}")
         for arg in [*n.inputs, *n.params, *grid_vars]:
             if not _NAME.match(arg):
                 raise PipelineError(f"node '{name}': invalid argument name {arg!r}")
@@ -161,14 +187,16 @@ class Graph:
         """Grid points as ((var, value), ...) tuples, the product over the grid's entries.
 
         An entry is `var: spec` or, zipped, `"a,b": spec` whose values are [a, b] lists (e.g.
-        source/target pairs).  spec is a literal list, a params key (a dict gives its keys), or
-        params keys joined by " + " (their lists concatenated, repeats dropped).  An empty list
-        gives the node no instances: a '[*]' gather of it is then empty, any other reference
-        to it an error."""
+        source/target pairs).  spec is a literal list, a params key (a dict gives its keys),
+        params keys joined by " + " (their lists concatenated, repeats dropped), or a Listing
+        (the list its function returns).  An empty list gives the node no instances: a '[*]'
+        gather of it is then empty, any other reference to it an error."""
         points: list[tuple[tuple[str, Any], ...]] = [()]
         for entry, spec in node.grid.items():
             names = [v.strip() for v in entry.split(",")]
-            if isinstance(spec, str):
+            if isinstance(spec, Listing):
+                values = _listed(node.name, entry, spec, params)
+            elif isinstance(spec, str):
                 values: list = []
                 for key in (k.strip() for k in spec.split("+")):
                     got = P.get(params, key)
@@ -211,6 +239,8 @@ class Graph:
                     f"{' / '.join(grids) or 'its grid'} a typo?") from None
             keys.append(dotted)
         keys += [k.strip() for spec in node.grid.values() if isinstance(spec, str) for k in spec.split("+")]
+        listed = [k for spec in node.grid.values() if isinstance(spec, Listing) for k in spec.params.values()]
+        keys += [k for k in dict.fromkeys(listed) if k not in keys]
         inst = Instance(node, tuple(bindings), resolved, param_keys=keys)
         for arg, ref in node.inputs.items():
             try:  # templates use grid values and the instance's params: "{spec[source]}[skin={skin}]"
@@ -291,7 +321,8 @@ class Graph:
             match = [i.name for i in instances.values() if i.node.name == node and
                      all(_fmt(dict(i.bindings)[k]) == v for k, v in (sel or {}).items())]
             if not match and not any(i.node.name == node for i in instances.values()):
-                grids = [spec for spec in self.nodes[node].grid.values() if isinstance(spec, str)]
+                grids = [spec.describe() if isinstance(spec, Listing) else spec
+                         for spec in self.nodes[node].grid.values() if isinstance(spec, (str, Listing))]
                 raise PipelineError(f"unknown target '{t}': '{node}' has no instance for these params "
                                     f"(its grid {' / '.join(grids)} is empty)")
             if not match:
@@ -309,3 +340,26 @@ class Graph:
                 need.add(n)
                 stack += instances[n].upstream()
         return [n for n in instances if n in need]
+
+
+def _listed(node: str, entry: str, spec: Listing, params: dict) -> list:
+    """The values a Listing grid entry's function returns for these params."""
+    kwargs = {**spec.args, **{arg: P.get(params, key) for arg, key in spec.params.items()}}
+    module, _, name = spec.func.partition(":")
+    try:
+        func = getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError) as exc:
+        raise PipelineError(f"node '{node}' grid '{entry}': cannot import '{spec.func}': {exc}") from None
+    try:
+        values = func(**kwargs)
+    except PipelineError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a listing's failure is the plan's, in one line
+        if getattr(exc, "user_error", False) is True:
+            raise PipelineError(str(exc)) from None
+        raise PipelineError(f"node '{node}' grid '{entry}': {spec.func} failed: "
+                            f"{type(exc).__name__}: {exc}") from None
+    if not isinstance(values, list):
+        raise PipelineError(f"node '{node}' grid '{entry}': {spec.func} returned "
+                            f"{type(values).__name__}, not a list")
+    return values

@@ -3,13 +3,13 @@ artifacts and params keys it reads, and what it fans out over.
 
 Functions are named by import path so that deciding what is stale imports no science.
 """
-from pipeline import Graph
+from pipeline import Graph, Listing
 
 GRAPH = Graph()
 
 # -- simulation twin: shapes and where they press ---------------------------------------
 GRAPH.node("indenters", "stages.sim.indenters:indenter_set",
-           params={"names": "indenters.names"},
+           params={"names": "indenters.names", "stl_dir": "indenters.stl_dir", "stl_tip": "indenters.stl_tip"},
            description="the 18 paper indenters + calibration prism, cone and flat punch as watertight meshes")
 GRAPH.node("sim_trajectory", "stages.sim.trajectory:sim_grid_trajectory",
            params={"positions_mm": "sim_trajectory.positions_mm", "depths_mm": "sim_trajectory.depths_mm",
@@ -67,7 +67,7 @@ GRAPH.node("markers", "stages.markers.unify:marker_sequence",
            grid={"skin": "render.skins + taxels.skins"},
            description="binary marker images: segmentation of camera looks, signal-to-marker of taxels")
 
-# -- hardware: capture and ingest (source nodes: run only when named) ----------------------
+# -- hardware: capture (source nodes: run only when named) ------------------------------------
 GRAPH.node("capture", "stages.capture.session:capture",
            inputs={"trajectory": "collection_trajectory", "indenters": "indenters"},
            params={"devices": "capture.devices", "emulate": "capture.emulate", "sensor": "capture.sensor",
@@ -87,9 +87,18 @@ GRAPH.node("capture_calibration", "stages.capture.session:capture_calibration",
                    "slcan": "capture.slcan", "spec": "sensors.{sensor}", "materials": "materials"},
            grid={"sensor": "capture.calibration.sensors"}, source=True,
            description="the calibration indentation pressed into a real sensor, recorded with an F/T sensor")
+
+# -- the authors' released dataset: a sensor per instance, as many as data.root holds ----------
+# (the Listings list data.root's folders at plan time; with data.source twin they list none)
+_AUTHORS = {"source": "data.source", "root": "data.root"}
 GRAPH.node("ingest", "stages.capture.ingest:ingest",
-           params={"root": "ingest.root", "sensor": "ingest.sensor", "size": "ingest.size"}, source=True,
-           description="the paper authors' published dataset layout as a contact sequence")
+           params={"root": "data.root", "size": "render.size", "modulus_depth_mm": "data.modulus_depth_mm"},
+           grid={"sensor": Listing("stages.capture.authors_layout:sensors", _AUTHORS)},
+           description="a sensor of the authors' released dataset as a contact sequence")
+GRAPH.node("authors_calibration", "stages.capture.authors_calibration:authors_calibration",
+           params={"root": "data.root"},
+           grid={"sensor": Listing("stages.capture.authors_layout:calibrated_sensors", _AUTHORS)},
+           description="a sensor's material-compensation curves as the authors released them")
 
 # -- M2M translation: one generator for every pair, a training-free baseline, image metrics ----
 GRAPH.node("m2m_sim", "stages.m2m.nodes:pretrain",

@@ -9,7 +9,10 @@ Modules (imported only when a node runs; this package itself imports nothing):
              a camera, the robot's RTDE interfaces; fault injection
   staging    the resumable staging HDF5 file
   session    node `capture`
-  ingest     node `ingest` and `write_example_dataset`
+  authors_layout       where things sit in the authors' released dataset; the sensors it holds
+  authors_files        readers of its frames, ft.csv, last.csv, depth and coefficient files
+  ingest               node `ingest[sensor]` and `pair_rows`
+  authors_calibration  node `authors_calibration[sensor]`: their material-compensation curves
 """
 
 

@@ -1,272 +1,348 @@
-"""Node `ingest`: the paper authors' published dataset layout -> a contact-sequence artifact.
+"""Node `ingest[sensor]`: one sensor of the GenForce authors' released dataset as a contact
+sequence, read as their own loaders read it (stages.capture.authors_layout: the tree;
+stages.capture.authors_files: each file).
 
-Assumed layout (one folder per contact; names are what the loader looks for):
+Contacts are the `<indenter>/<point>` folders of the sensor's image tree, indenters in
+stages.sim.indenters order (their names with '-' for '_', e.g. sphere-s, are the same
+indenters; others follow by name), points as integers (the robot's counter 1, 2, ...).  A
+contact without its force folder or ft.csv is left out, as the authors' loaders leave it out
+(attrs `skipped`); anything else missing or malformed stops the node with one line naming the
+file.  A contact's frames are NNNN.npy / NNNN.jpg counting from 0000 with none missing, one
+ft.csv row each.
 
-  <root>/<sensor>/reference.npy       optional no-contact marker image: (480, 80) uint8
-                                      bit-packed like the frames, or (480, 640) 0/1 or 0/255
-  <root>/<sensor>/<indenter>/<contact>/
-      markers.npy   (N, 480, 80) uint8: N binary 480x640 marker images (white markers = 1),
-                    np.packbits along the last axis (numpy's default big bit order: pixel
-                    8k + 7 - b is bit b of byte k, so pixel 8k is the byte's top bit)
-      ft.csv        header Fx,Fy,Fz,Tx,Ty,Tz, one row per frame: N and N m, the paper's sign
-                    (Fz < 0 pressing); other columns are ignored
-      depth.csv     header depth_mm and optionally x_mm,y_mm, one row per frame: the depth below
-                    first touch and the tip's lateral position in the sensor frame, mm
-
-Indenter folders are ordered as stages.sim.indenters.ALL_INDENTERS (unknown names after them,
-sorted), contact folders in natural order (2 before 10); frames keep their order.
-
-Derived labels, per contact: position = (x, y, -depth) (x, y = 0 without x_mm, y_mm);
-shift = (x, y) less the first frame's; phase from the motion into each frame: depth up by more
-than depth_tol_mm = press (0), down = release (3), otherwise a lateral step longer than
-move_tol_mm is shear out (1) when it moves away from the touchdown point, shear back (2) when
-it comes closer, and a frame that does not move keeps the previous frame's phase (the first
-frame: press).  A movement is a run of equal phase; its last n_paired frames are `paired`.
-`frame` numbers the frames of the whole dataset in that order (the authors collected every
-sensor along the same protocol, so equal numbers are equal indenter locations when the
-sensors' folders hold the same contacts).  normalised_depth = depth / max_depth_mm (default:
-the deepest frame of the dataset).
-
-Images are resized to `size` (H, W) with area interpolation of the 0/1 image and re-binarised
-at one half (0/255 uint8); the reference is reference.npy if present, else the first frame of
-the first contact.  Missing files and wrong shapes raise ValueError naming the file.
+Per frame (N = all frames of the sensor):
+  images       (N,H,W) uint8 0/255: the 480x640 mask area-resized to `size` (coverage >= 1/2)
+  force        (N,3) float32 N, ft.csv's Fx, Fy, Fz as recorded (Fz < 0 pressing)
+  torque       (N,3) float32 N m: ft.csv's Tx, Ty, Tz, recorded in N mm (only when every ft.csv has them)
+  phase        (N,) int8: 0 press, 1 shear out, 2 shear back, 3 release, from last.csv's
+               motion ends e0 < e1 < e2 (< e3): frames up to e0 press, up to e1 shear out, up to
+               e2 shear back, the rest release (a last.csv of three lines, all M2M reads, is taken)
+  paired       (N,) bool: the four frames M2M pairs (training_utils.py PairedDatasetReal):
+               last.csv's first three (end of press, of shear out, of shear back) and 0000
+  paired_position (N,) int8: that list's position 0..3 (0000 is 3); -1 elsewhere
+  point        (N,) int32: the contact folder's number; contact_id (N,) int32: contacts in order
+  indenter_id  (N,) int16: index into `indenters` (names)
+  file_frame   (N,) int32: the frame file's NNNN
+  frame        (N,) int64: a location key, equal in two sensors exactly where the authors pair
+               them: indenter code * 10^8 + point * 10 + paired_position on paired frames (code
+               1 + the indenter's index in stages.sim.indenters.ALL_INDENTERS, or 100 + CRC-32
+               of an unknown name), and a negative number unique to the sensor elsewhere; so
+               stages.m2m.data.paired_table pairs real sensors as it pairs the twins.  Frame
+               counts differ between sensors at one location: frame numbers never pair.
+  depth, normalised_depth, loading   (N,) where the set has depth (modulus, hetero):
+               inc_z.csv's rows then dec_z.csv's, which together must number the ft.csv rows;
+               loading = the row is in inc_z (the authors evaluate their `_down` curve there,
+               `_up` on dec_z).  hetero: the files hold the robot's z (mm, down is negative);
+               normalised_depth = (top - z) / (top - bottom) with the authors' per-sensor
+               constants (force/com/com_hetero/data_loader.py; another sensor: its files'
+               largest and smallest z), depth = top - z mm.  modulus: their loader feeds the
+               values to the curves unchanged, so normalised_depth = the value and depth = the
+               value * modulus_depth_mm (their calibration pressed 1 mm).
+Once: reference (H,W) (<sensor>_ref.npy or .jpg beside the sensor folders, else the first
+contact's 0000), indenters, attrs (sensor, set, counts, skipped contacts, assumptions).
+Images stream in chunks of CHUNK frames; the small labels are read first (every file is
+checked before any frame is decoded).
 """
 from __future__ import annotations
 
-import csv
 import os
-import re
+import zlib
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Mapping, Sequence
 
 import numpy as np
 
+from stages.capture.authors_files import (FRAME_SUFFIXES, SOURCE_SIZE, read_column, read_frame, read_ft,
+                                          read_last, unpack)
+from stages.capture.authors_layout import SensorDirs, locate
 from stages.common import InputError
 from stages.sim.indenters import ALL_INDENTERS
 
-SOURCE_SIZE = (480, 640)
-FT_COLUMNS = ("Fx", "Fy", "Fz", "Tx", "Ty", "Tz")
+CHUNK = 64                      # frames per streamed chunk (a 480x640 mask is 300 kB unpacked)
+START_POSITION = 3              # 0000's place in the authors' list
+MAX_POINT = 10 ** 7             # contact numbers fit their digits of the frame key
+# com_hetero/data_loader.py: normalised = (top - z) / (top - bottom), per source sensor
+HETERO_DEPTH = {"uskin": (1.08649, -0.0736), "tactip": (4.648126681, -0.049249177),
+                "gelsight": (1.12310475, -0.07459319)}
 
 
-def _natural(name: str):
-    return [int(p) if p.isdigit() else p for p in re.split(r"(\d+)", name)]
+def canonical_indenter(name: str) -> str:
+    """The authors' spelling variants of one indenter (sphere-s, sphere_s) as one name."""
+    alt = name.replace("-", "_")
+    return alt if alt in ALL_INDENTERS else name
 
 
-def _contacts(sensor_dir: Path) -> tuple[list[str], list[tuple[str, Path]]]:
-    """Indenter names (in id order) and the (indenter, contact folder) list."""
-    found = sorted(p.name for p in sensor_dir.iterdir() if p.is_dir())
-    if not found:
-        raise InputError(f"ingest: {sensor_dir} holds no indenter folders")
-    names = list(ALL_INDENTERS) + sorted(n for n in found if n not in ALL_INDENTERS)
+def indenter_code(name: str) -> int:
+    """A number for an indenter name, the same in every sensor (frame keys)."""
+    name = canonical_indenter(name)
+    if name in ALL_INDENTERS:
+        return 1 + ALL_INDENTERS.index(name)
+    return 100 + zlib.crc32(name.encode())
+
+
+@dataclass
+class Contact:
+    indenter: str               # canonical name
+    folder: Path                # image folder
+    point: int
+    suffix: np.ndarray          # (n,) uint8: 0 .npy, 1 .jpg per frame
+    ends: list[int]
+    force: np.ndarray
+    torque: np.ndarray | None
+    inc: np.ndarray | None = None
+    dec: np.ndarray | None = None
+
+    @property
+    def n(self) -> int:
+        return len(self.suffix)
+
+    def path(self, k: int) -> Path:
+        return self.folder / f"{k:04d}{FRAME_SUFFIXES[self.suffix[k]]}"
+
+
+def _by_canonical(folder: Path, what: str) -> dict[str, str]:
+    """{canonical indenter: folder name} of the indenter folders under `folder`."""
+    out: dict[str, str] = {}
+    for e in sorted(os.scandir(folder), key=lambda e: e.name) if folder.is_dir() else []:
+        if e.is_dir() and not e.name.startswith("."):
+            c = canonical_indenter(e.name)
+            if c in out:
+                raise InputError(f"{folder} holds both {out[c]!r} and {e.name!r}, one indenter "
+                                 f"in two spellings ({what})")
+            out[c] = e.name
+    return out
+
+
+def _points(folder: Path) -> list[tuple[int, str]]:
     out = []
-    for name in sorted(found, key=names.index):
-        for c in sorted((p for p in (sensor_dir / name).iterdir() if p.is_dir()), key=lambda p: _natural(p.name)):
-            out.append((name, c))
-    if not out:
-        raise InputError(f"ingest: no contact folders under {sensor_dir}/<indenter>/")
-    return names, out
+    for e in os.scandir(folder):
+        if e.is_dir() and not e.name.startswith("."):
+            if not e.name.isdigit() or int(e.name) >= MAX_POINT:
+                raise InputError(f"contact folder {folder / e.name} is not a number below {MAX_POINT} "
+                                 "(the robot's counter 1, 2, ...)")
+            out.append((int(e.name), e.name))
+    return sorted(out)
 
 
-def _csv(path: Path, required, optional=()) -> dict[str, np.ndarray]:
-    if not path.is_file():
-        raise InputError(f"ingest: missing file {path}")
-    with open(path, newline="") as f:
-        reader = csv.reader(f)
-        header = [h.strip() for h in next(reader, [])]
-        rows = [r for r in reader if r]
-    missing = [c for c in required if c not in header]
+def _frames(folder: Path) -> np.ndarray:
+    """(n,) suffix codes of NNNN.npy / NNNN.jpg frames 0..n-1, or an InputError naming the file."""
+    found: dict[int, int] = {}
+    for e in os.scandir(folder):
+        stem, suffix = os.path.splitext(e.name)
+        if suffix not in FRAME_SUFFIXES or e.name.startswith("."):
+            continue
+        if not stem.isdigit() or e.name != f"{int(stem):04d}{suffix}":
+            raise InputError(f"{folder / e.name} is not a frame name (NNNN.npy or NNNN.jpg)")
+        k = int(stem)
+        if k in found:
+            raise InputError(f"{folder} holds frame {k:04d} twice (.npy and .jpg)")
+        found[k] = FRAME_SUFFIXES.index(suffix)
+    if not found:
+        raise InputError(f"{folder} holds no NNNN.npy or NNNN.jpg frames")
+    n = max(found) + 1
+    missing = [k for k in range(n) if k not in found]
     if missing:
-        raise InputError(f"ingest: {path} lacks column(s) {', '.join(missing)} (header {','.join(header)})")
-    try:
-        table = np.array([[float(v) for v in r] for r in rows], float).reshape(len(rows), len(header))
-    except ValueError:
-        raise InputError(f"ingest: {path} has a malformed row (every row needs {len(header)} numbers)") from None
-    if not np.isfinite(table).all():
-        row = int(np.flatnonzero(~np.isfinite(table).all(axis=1))[0])
-        raise InputError(f"ingest: {path} row {row + 2} holds a value that is not a finite number")
-    return {c: table[:, header.index(c)] for c in (*required, *optional) if c in header}
+        near = found.get(missing[0] + 1, found.get(missing[0] - 1, 0))
+        raise InputError(f"missing frame {folder / f'{missing[0]:04d}{FRAME_SUFFIXES[near]}'}")
+    return np.array([found[k] for k in range(n)], np.uint8)
 
 
-def _unpack(packed: np.ndarray) -> np.ndarray:
-    """(..., 480, 80) bit-packed -> (..., 480, 640) 0/1 uint8."""
-    return np.unpackbits(packed, axis=-1)[..., :SOURCE_SIZE[1]]
+def _check_ends(ends: list[int], n: int, path: Path, folder: Path) -> None:
+    for e in ends:
+        if e >= n:
+            raise InputError(f"{path} names frame {e:04d}, which {folder} does not hold "
+                             f"(frames 0000-{n - 1:04d})")
+    if not all(a < b for a, b in zip([0, *ends], ends)):
+        raise InputError(f"{path} names frames {', '.join(f'{e:04d}' for e in ends)}; expected the "
+                         "motions' last frames in order, the first after 0000")
 
 
-def _load_npy(path: Path) -> np.ndarray:
-    try:
-        return np.load(path, allow_pickle=False)
-    except (OSError, ValueError, EOFError) as exc:
-        raise InputError(f"ingest: {path} is not a readable .npy array ({str(exc).splitlines()[0]})") from None
+def scan(dirs: SensorDirs) -> tuple[list[Contact], list[str]]:
+    """Every contact of a sensor with its labels read and checked, and the contacts left out."""
+    images = _by_canonical(dirs.images, "images")
+    if not images:
+        raise InputError(f"no indenter folders under {dirs.images}")
+    forces = _by_canonical(dirs.force, "forces")
+    depths = _by_canonical(dirs.depth, "depth") if dirs.depth is not None else {}
+    order = [n for n in ALL_INDENTERS if n in images] + sorted(n for n in images if n not in ALL_INDENTERS)
+    contacts, skipped = [], []
+    for name in order:
+        for point, pname in _points(dirs.images / images[name]):
+            folder = dirs.images / images[name] / pname
+            ft = dirs.force / forces.get(name, images[name]) / pname / "ft.csv"
+            if not ft.is_file():
+                skipped.append(f"{images[name]}/{pname}")
+                continue
+            suffix = _frames(folder)
+            force, torque = read_ft(ft)
+            if len(force) != len(suffix):
+                raise InputError(f"{ft} has {len(force)} rows but {folder} holds {len(suffix)} frames")
+            last = dirs.last_csv / images[name] / pname / "last.csv"
+            ends = read_last(last)
+            _check_ends(ends, len(suffix), last, folder)
+            c = Contact(name, folder, point, suffix, ends, force, torque)
+            if dirs.depth is not None:
+                base = dirs.depth / depths.get(name, images[name]) / pname
+                c.inc, c.dec = read_column(base / "inc_z.csv"), read_column(base / "dec_z.csv")
+                if len(c.inc) + len(c.dec) != c.n:
+                    raise InputError(f"{base / 'inc_z.csv'} and dec_z.csv have {len(c.inc)} + "
+                                     f"{len(c.dec)} rows but {ft} has {c.n}")
+            contacts.append(c)
+    if not contacts:
+        raise InputError(f"no contact of {dirs.images} has its ft.csv under {dirs.force}")
+    return contacts, skipped
 
 
-def _markers(path: Path) -> np.ndarray:
-    if not path.is_file():
-        raise InputError(f"ingest: missing file {path}")
-    packed = _load_npy(path)
-    want = (SOURCE_SIZE[0], SOURCE_SIZE[1] // 8)
-    if packed.dtype != np.uint8 or packed.ndim != 3 or packed.shape[1:] != want:
-        raise InputError(f"ingest: {path} holds {packed.dtype} {packed.shape}; expected uint8 "
-                         f"(N, {want[0]}, {want[1]}) bit-packed 480x640 images")
-    return packed
+def contact_labels(c: Contact) -> dict[str, np.ndarray]:
+    """phase, paired, paired_position and file_frame of one contact."""
+    k = np.arange(c.n)
+    phase = np.searchsorted(np.asarray(c.ends[:3]), k, side="left").astype(np.int8)
+    position = np.full(c.n, -1, np.int8)
+    position[c.ends[:3]] = np.arange(3)
+    position[0] = START_POSITION
+    return {"phase": phase, "paired": position >= 0, "paired_position": position,
+            "file_frame": k.astype(np.int32)}
 
 
-def _binarise(bits: np.ndarray, size) -> np.ndarray:
-    """(N, 480, 640) 0/1 -> (N, H, W) 0/255: area-resized coverage >= 1/2."""
+def _depth_frame(sensor: str, set_name: str, contacts: list[Contact], modulus_depth_mm: float):
+    """(normalise: z (n,) -> (depth mm, normalised), attrs) for a set with depth."""
+    if set_name == "modulus":
+        scale = float(modulus_depth_mm)
+        if not (np.isfinite(scale) and scale > 0):
+            raise InputError(f"data.modulus_depth_mm must be a positive number of mm, got {modulus_depth_mm!r}")
+        return (lambda z: (z * scale, z)), {"depth_values": "normalised depth (the curves' input)",
+                                            "modulus_depth_mm": scale}
+    if sensor in HETERO_DEPTH:
+        top, bottom = HETERO_DEPTH[sensor]
+        source = "the authors' constants (com_hetero/data_loader.py)"
+    else:
+        zs = np.concatenate([np.r_[c.inc, c.dec] for c in contacts])
+        top, bottom = float(zs.max()), float(zs.min())
+        source = "this sensor's largest and smallest z"
+    if not top > bottom:
+        raise InputError(f"{sensor}'s depth files span no depth (z from {bottom} to {top})")
+    return (lambda z: (top - z, (top - z) / (top - bottom))), {
+        "depth_values": "robot z, mm", "depth_top": top, "depth_bottom": bottom, "depth_constants": source}
+
+
+def _resize(bits: np.ndarray, size) -> np.ndarray:
+    """(n,h,w) 0/1 -> (n,H,W) 0/255: area-resized coverage >= 1/2."""
     import cv2
-    h, w = (int(v) for v in size)
-    if bits.shape[-2:] == (h, w):
-        return (bits.astype(np.uint8) * 255).astype(np.uint8)
-    out = np.empty((bits.shape[0], h, w), np.uint8)
+    h, w = size
+    if bits.shape[1:] == (h, w):
+        return bits * np.uint8(255)
+    out = np.empty((len(bits), h, w), np.uint8)
     for i, b in enumerate(bits):
         cover = cv2.resize(b.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)
         out[i] = np.where(cover >= 0.5, 255, 0)
     return out
 
 
-def infer_phase(depth, xy=None, *, depth_tol_mm: float = 0.01, move_tol_mm: float = 0.01) -> np.ndarray:
-    """(N,) int8 phases of one contact from its depth (N,) and lateral position (N, 2), mm."""
-    depth = np.asarray(depth, float)
-    n = depth.size
-    xy = np.zeros((n, 2)) if xy is None else np.asarray(xy, float)
-    radius = np.hypot(*(xy - xy[:1]).T)
-    phase = np.zeros(n, np.int8)
-    prev_d, prev_xy, prev_r, prev_p = 0.0, xy[0] if n else None, 0.0, 0
-    for k in range(n):
-        dd = depth[k] - prev_d
-        if dd > depth_tol_mm:
-            p = 0
-        elif dd < -depth_tol_mm:
-            p = 3
-        elif np.hypot(*(xy[k] - prev_xy)) > move_tol_mm:
-            p = 1 if radius[k] > prev_r else 2
-        else:
-            p = prev_p
-        phase[k] = prev_p = p
-        prev_d, prev_xy, prev_r = depth[k], xy[k], radius[k]
-    return phase
+class _Decoder:
+    """Frames -> (n,H,W) 0/255, every frame of a sensor of one source size."""
+
+    def __init__(self, size):
+        self.size = size
+        self.shape: tuple[int, int] | None = None
+
+    def check(self, shape, path: Path) -> None:
+        if self.shape is None:
+            self.shape = tuple(shape)
+        elif tuple(shape) != self.shape:
+            raise InputError(f"frame {path} is wrongly sized: {shape[0]}x{shape[1]}, the sensor's "
+                             f"other frames are {self.shape[0]}x{self.shape[1]}")
+
+    def decode(self, paths: list[Path]) -> np.ndarray:
+        read = [read_frame(p) for p in paths]
+        packed = [i for i, (kind, _) in enumerate(read) if kind == "packed"]
+        if len(packed) == len(read):                     # the usual case: one unpack for all
+            self.check(SOURCE_SIZE, paths[0])
+            return _resize(unpack(np.stack([a for _, a in read])), self.size)
+        out = np.empty((len(read), *self.size), np.uint8)
+        for i, ((kind, arr), p) in enumerate(zip(read, paths)):
+            bits = unpack(arr[None])[0] if kind == "packed" else arr
+            self.check(bits.shape, p)
+            out[i] = _resize(bits[None], self.size)[0]
+        return out
 
 
-def paired_frames(phase: np.ndarray, n_paired: int = 4) -> np.ndarray:
-    """(N,) bool: the last n_paired frames of every run of equal phase."""
-    phase = np.asarray(phase)
-    ends = np.append(np.flatnonzero(np.diff(phase)), phase.size - 1)
-    pos = np.arange(phase.size)
-    return (ends[np.searchsorted(ends, pos)] - pos) < int(n_paired)
-
-
-def _reference(sensor_dir: Path, first_contact: Path, size) -> np.ndarray:
-    path = sensor_dir / "reference.npy"
-    if path.is_file():
-        ref = _load_npy(path)
-        if ref.dtype == np.uint8 and ref.shape == (SOURCE_SIZE[0], SOURCE_SIZE[1] // 8):
-            bits = _unpack(ref)
-        elif ref.shape == SOURCE_SIZE:
-            bits = (np.asarray(ref) > 0).astype(np.uint8)
-        else:
-            raise InputError(f"ingest: {path} holds {ref.dtype} {ref.shape}; expected (480, 80) "
-                             "bit-packed uint8 or a (480, 640) image")
+def _reference(dirs: SensorDirs, first: Contact, size) -> tuple[np.ndarray, str]:
+    for suffix in FRAME_SUFFIXES:
+        path = dirs.reference_dir / f"{dirs.sensor}_ref{suffix}"
+        if path.is_file():
+            break
     else:
-        bits = _unpack(_markers(first_contact / "markers.npy")[:1])[0]
-    return _binarise(bits[None], size)[0]
+        path = first.path(0)
+    kind, arr = read_frame(path)
+    bits = unpack(arr[None])[0] if kind == "packed" else arr
+    return _resize(bits[None], size)[0], str(path)
 
 
-def ingest(*, root: str, sensor: str, size, max_depth_mm: float | None = None, n_paired: int = 4,
-           depth_tol_mm: float = 0.01, move_tol_mm: float = 0.01):
-    """Node `ingest`: yields one chunk per contact (images (n,H,W) 0/255 and the contact-sequence
-    labels, plus torque (n,3)), returns reference (H,W), indenters (names) and attrs.  See the
-    module docstring for the layout and how labels are derived."""
+def ingest(*, root: str, sensor: str, size, modulus_depth_mm: float = 1.0):
+    """Node `ingest[sensor]`: yields chunks of images and per-frame labels, returns reference,
+    indenters and attrs (see the module docstring)."""
+    from tqdm import tqdm
     if len(size) != 2 or not all(isinstance(v, int) and v >= 8 for v in size):
-        raise InputError(f"ingest.size must be [height, width] in pixels, each >= 8, got {size!r}")
-    sensor_dir = Path(root) / sensor
-    if not sensor_dir.is_dir():
-        raise InputError(f"ingest: no folder {sensor_dir} (expected <root>/<sensor>/<indenter>/<contact>/)")
-    names, contacts = _contacts(sensor_dir)
-    tables = []
-    for _, folder in contacts:                         # read the small files first: check, max depth
-        depth = _csv(folder / "depth.csv", ("depth_mm",), ("x_mm", "y_mm"))
-        ft = _csv(folder / "ft.csv", FT_COLUMNS)
-        if len(ft["Fx"]) != len(depth["depth_mm"]):
-            raise InputError(f"ingest: {folder / 'ft.csv'} has {len(ft['Fx'])} rows but "
-                             f"{folder / 'depth.csv'} has {len(depth['depth_mm'])}")
-        tables.append((depth, ft))
-    deepest = max(float(np.max(d["depth_mm"], initial=0.0)) for d, _ in tables)
-    max_depth = float(max_depth_mm or deepest or 1.0)
-    frame = 0
-    for cid, ((name, folder), (depth, ft)) in enumerate(zip(contacts, tables)):
-        packed = _markers(folder / "markers.npy")
-        n = len(depth["depth_mm"])
-        if packed.shape[0] != n:
-            raise InputError(f"ingest: {folder / 'markers.npy'} has {packed.shape[0]} frames but "
-                             f"{folder / 'depth.csv'} has {n} rows")
-        d = depth["depth_mm"]
-        xy = np.column_stack([depth.get("x_mm", np.zeros(n)), depth.get("y_mm", np.zeros(n))])
-        phase = infer_phase(d, xy, depth_tol_mm=depth_tol_mm, move_tol_mm=move_tol_mm)
-        yield {"images": _binarise(_unpack(packed), size),
-               "force": np.column_stack([ft[c] for c in FT_COLUMNS[:3]]).astype(np.float32),
-               "torque": np.column_stack([ft[c] for c in FT_COLUMNS[3:]]).astype(np.float32),
-               "depth": d, "normalised_depth": (d / max_depth).astype(np.float32),
-               "position": np.column_stack([xy, -d]), "shift": xy - xy[:1],
-               "phase": phase, "contact_id": np.full(n, cid, np.int32),
-               "indenter_id": np.full(n, names.index(name), np.int16),
-               "paired": paired_frames(phase, n_paired), "frame": np.arange(frame, frame + n, dtype=np.int64)}
-        frame += n
-    return {"reference": _reference(sensor_dir, contacts[0][1], size), "indenters": names,
-            "attrs": {"sensor": sensor, "root": str(root), "contacts": len(contacts), "frames": frame,
-                      "source_size": list(SOURCE_SIZE), "size": [int(v) for v in size],
-                      "max_depth_mm": max_depth}}
+        raise InputError(f"render.size must be [height, width] in pixels, each >= 8, got {size!r}")
+    size = (int(size[0]), int(size[1]))
+    dirs = locate(root, sensor)
+    contacts, skipped = scan(dirs)
+    names = list(dict.fromkeys(c.indenter for c in contacts))
+    with_torque = all(c.torque is not None for c in contacts)
+    normalise, depth_attrs = (_depth_frame(sensor, dirs.set, contacts, modulus_depth_mm)
+                              if dirs.depth is not None else (None, {}))
+    unpaired_base = -(zlib.crc32(sensor.encode()) * 10 ** 9)
+    labels: dict[str, list] = {}
+    row0 = 0
+    for cid, c in enumerate(contacts):
+        lab = contact_labels(c)
+        key = indenter_code(c.indenter) * 10 ** 8 + c.point * 10 + lab["paired_position"].astype(np.int64)
+        lab["frame"] = np.where(lab["paired"], key, unpaired_base - 1 - (row0 + np.arange(c.n)))
+        row0 += c.n
+        lab.update(force=c.force.astype(np.float32), contact_id=np.full(c.n, cid, np.int32),
+                   indenter_id=np.full(c.n, names.index(c.indenter), np.int16),
+                   point=np.full(c.n, c.point, np.int32))
+        if with_torque:
+            lab["torque"] = c.torque.astype(np.float32)
+        if normalise is not None:
+            z = np.r_[c.inc, c.dec]
+            depth, norm = normalise(z)
+            lab.update(depth=depth.astype(np.float32), normalised_depth=norm.astype(np.float32),
+                       loading=np.arange(c.n) < len(c.inc))
+        for k, v in lab.items():
+            labels.setdefault(k, []).append(v)
+    labels = {k: np.concatenate(v) for k, v in labels.items()}
+    decoder = _Decoder(size)
+    n = row0
+    for start in tqdm(range(0, n, CHUNK), desc=f"ingest[{sensor}]", unit="chunk", disable=None, leave=False):
+        stop = min(start + CHUNK, n)
+        rows = zip(labels["contact_id"][start:stop].tolist(), labels["file_frame"][start:stop].tolist())
+        images = decoder.decode([contacts[cid].path(k) for cid, k in rows])
+        yield {"images": images, **{k: v[start:stop] for k, v in labels.items()}}
+    reference, reference_from = _reference(dirs, contacts[0], size)
+    return {"reference": reference, "indenters": names,
+            "attrs": {"sensor": sensor, "set": dirs.set, "root": str(root), "contacts": len(contacts),
+                      "frames": n, "source_size": list(decoder.shape or SOURCE_SIZE), "image_size": list(size),
+                      "skipped": skipped, "reference_from": reference_from,
+                      "last_csv_dir": str(dirs.last_csv), "torque_units": "N m" if with_torque else "absent",
+                      "jpg_frames": int(sum(int(c.suffix.sum()) for c in contacts)), **depth_attrs}}
 
 
-def write_example_dataset(root, sensor: str = "gelsight", indenters=("sphere", "prism"), contacts: int = 2,
-                          frames: int = 12, seed: int = 0) -> str:
-    """Write a small dataset in the layout above; returns `<root>/<sensor>`.
-
-    Each contact presses to a random depth (0.5..1.5 mm) over the first third of its frames,
-    shears 1 mm out and back along a random direction over the second, and releases over the
-    rest; forces follow a Hertz-like law with noise.  Marker images are the GelSight A-II
-    pattern with markers pushed radially away from the contact point in proportion to the
-    depth and dragged along by the shear.  A reference.npy (the undeformed pattern) is written.
-    """
-    from stages.markers.patterns import MarkerSet, gelsight_pattern, rasterize
-    if frames < 6 or contacts < 1:
-        raise ValueError("write_example_dataset: frames must be >= 6 and contacts >= 1")
-    rng = np.random.default_rng(seed)
-    base = gelsight_pattern("A-II")
-    h, w = SOURCE_SIZE
-    pad_h = base.pad_size_mm[1]
-
-    def draw(centres):
-        bits = rasterize(MarkerSet(centres, base.axes, base.angles, (pad_h * w / h, pad_h)), size=(h, w),
-                         supersample=1) > 0
-        return np.packbits(bits, axis=-1)
-
-    out = Path(root) / sensor
-    out.mkdir(parents=True, exist_ok=True)
-    np.save(out / "reference.npy", draw(base.centers))
-    third = frames // 3
-    for name in indenters:
-        for c in range(contacts):
-            folder = out / name / f"{c + 1}"
-            folder.mkdir(parents=True, exist_ok=True)
-            d_max, ang = rng.uniform(0.5, 1.5), rng.uniform(0, 2 * np.pi)
-            point = rng.uniform(-3, 3, 2)
-            rest = frames - 2 * third
-            out_n = third // 2
-            s = np.concatenate([np.linspace(0, 1, out_n + 1)[1:], np.linspace(1, 0, third - out_n + 1)[1:]])
-            depth = np.concatenate([d_max * np.arange(1, third + 1) / third, np.full(third, d_max),
-                                    d_max * np.arange(rest - 1, -1, -1) / rest])
-            shift = np.outer(np.concatenate([np.zeros(third), s, np.zeros(rest)]), [np.cos(ang), np.sin(ang)])
-            xy = point + shift
-            fz = -2.0 * depth ** 1.5 + rng.normal(0, 0.01, frames)
-            fxy = 0.8 * shift + rng.normal(0, 0.005, (frames, 2))
-            ft = np.column_stack([fxy, fz, rng.normal(0, 1e-3, (frames, 3))])
-            images = []
-            for k in range(frames):
-                rel = base.centers - xy[k]
-                r = np.hypot(*rel.T)[:, None]
-                push = 0.3 * depth[k] * rel / np.maximum(r, 1e-6) * np.exp(-(r / 4.0) ** 2)
-                drag = shift[k] * np.exp(-(r / 4.0) ** 2)
-                images.append(draw(base.centers + push + drag))
-            np.save(folder / "markers.npy", np.stack(images))
-            np.savetxt(folder / "ft.csv", ft, delimiter=",", header=",".join(FT_COLUMNS), comments="", fmt="%.17g")
-            np.savetxt(folder / "depth.csv", np.column_stack([depth, xy]), delimiter=",",
-                       header="depth_mm,x_mm,y_mm", comments="", fmt="%.17g")
-    return os.fspath(out)
+def pair_rows(a: Mapping, b: Mapping, indenters: Sequence[str] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(rows_a (K,), rows_b (K,)): the frames of two ingested sensors the authors pair: the same
+    indenter, contact point and motion position (paired_position), for `indenters` (None: all
+    both hold), in a's row order.  Never by frame number."""
+    keys = []
+    for art in (a, b):
+        names = [n.decode() if isinstance(n, bytes) else str(n) for n in np.asarray(art["indenters"]).ravel()]
+        rows = np.flatnonzero(np.asarray(art["paired"], bool))
+        ind = np.asarray(art["indenter_id"])[rows]
+        point = np.asarray(art["point"])[rows]
+        pos = np.asarray(art["paired_position"])[rows]
+        keys.append({(names[i], int(p), int(q)): int(r) for i, p, q, r in zip(ind, point, pos, rows)})
+    if indenters is not None:
+        wanted = {canonical_indenter(n) for n in indenters}
+        keys[0] = {k: r for k, r in keys[0].items() if k[0] in wanted}
+    common = [k for k in keys[0] if k in keys[1]]
+    return (np.array([keys[0][k] for k in common], np.int64), np.array([keys[1][k] for k in common], np.int64))

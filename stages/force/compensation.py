@@ -76,10 +76,11 @@ def fit_curves(normalised_depth, force, loading) -> Curves:
 def curves_from_calibration(calibration: Mapping) -> Curves:
     """Curves of a calibration: a calibrate[sensor] or capture_calibration[sensor] artifact, or a
     dict with the same arrays (normalised_depth, force, and loading or phase), or one that holds
-    fitted coefficients already (`loading_coef`, `unloading_coef`, as the authors' files give)."""
-    if "loading_coef" in calibration and "unloading_coef" in calibration:
-        return Curves(tuple(float(v) for v in np.asarray(calibration["loading_coef"]).ravel()),
-                      tuple(float(v) for v in np.asarray(calibration["unloading_coef"]).ravel()))
+    the curves' coefficients (an authors_calibration[sensor] artifact: loading_coefficients,
+    unloading_coefficients, read from the authors' files)."""
+    if "loading_coefficients" in calibration and "unloading_coefficients" in calibration:
+        return Curves(tuple(float(v) for v in np.asarray(calibration["loading_coefficients"]).ravel()),
+                      tuple(float(v) for v in np.asarray(calibration["unloading_coefficients"]).ravel()))
     missing = [k for k in ("normalised_depth", "force") if k not in calibration]
     if "loading" not in calibration and "phase" not in calibration:
         missing.append("loading or phase")

@@ -363,21 +363,32 @@ def height_map(mesh_or_name, *, shape, spacing: float, position=(0.0, 0.0),
     return _rasterise(tris, h, w, float(spacing))
 
 
-def indenter_set(names) -> dict:
-    """Node `indenters`: every named mesh (vertices mm, faces) with its metadata."""
+def indenter_set(names, stl_dir: str | None = None, stl_tip: str = "auto") -> dict:
+    """Node `indenters`: every named mesh (vertices mm, faces) with its metadata.  With
+    `stl_dir`, a name with a <name>.stl there takes that mesh, repaired and placed by
+    stages.sim.stl (`stl_tip`: which end presses); the others stay procedural."""
     names = list(names)
     metas = [indenter_meta(n) for n in names]
+    found = {}
+    if stl_dir is not None:
+        from stages.sim.stl import stl_meshes
+        found = stl_meshes(stl_dir, names, stl_tip)
     meshes = {}
-    for n in names:
-        mesh = make_indenter(n)
+    for n, meta in zip(names, metas):
+        mesh = found[n] if n in found else make_indenter(n)
+        if n in found:
+            meta.update(extents=mesh.extents.copy(), volume_mm3=float(mesh.volume))
         meshes[n] = {"vertices": mesh.vertices.astype(np.float32), "faces": mesh.faces.astype(np.int32)}
+    attrs = {"units": "mm", "convention": "tip lowest point at z=0, body towards +z"}
+    if stl_dir is not None:
+        attrs.update(stl_dir=str(stl_dir), from_stl=[n for n in names if n in found])
     return {
         "names": names,
         "group": [m["group"] for m in metas],
         "extents": np.array([m["extents"] for m in metas], np.float32),
         "volume_mm3": np.array([m["volume_mm3"] for m in metas]),
         "meshes": meshes,
-        "attrs": {"units": "mm", "convention": "tip lowest point at z=0, body towards +z"},
+        "attrs": attrs,
     }
 
 

@@ -191,3 +191,73 @@ def test_a_params_list_selector_gathers_only_the_listed_instances():
         g.expand({**ZPARAMS, "sims": "a"})
     with pytest.raises(PipelineError, match=r"unknown param 'sims'"):
         g.expand(ZPARAMS)
+
+
+# -- Listing: grid values a plan-time function lists ---------------------------------------
+
+LISTER = '''
+class Bad(ValueError):
+    user_error = True
+
+def sensors(source, root, prefix=""):
+    if prefix:
+        return [prefix + r for r in root.split(":")]
+    if source == "none":
+        return []
+    if source == "bad":
+        raise Bad(f"no sensors under {root}")
+    if source == "crash":
+        raise ZeroDivisionError("boom")
+    if source == "tuple":
+        return ("a",)
+    return sorted(root.split(":"))
+'''
+
+
+@pytest.fixture()
+def listing_graph(tmp_path, monkeypatch):
+    from pipeline.graph import Listing
+    (tmp_path / "lister_mod.py").write_text(LISTER)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    g = Graph()
+    g.node("ingest", "m:i", params={"root": "data.root"},
+           grid={"sensor": Listing("lister_mod:sensors", {"source": "data.source", "root": "data.root"})})
+    g.node("study", "m:s", inputs={"all": "ingest[*]"})
+    return g
+
+
+def test_listing_grid_lists_instances_from_params(listing_graph):
+    from pipeline.graph import Listing
+    inst = listing_graph.expand({"data": {"source": "authors", "root": "b:a"}})
+    assert list(inst) == ["ingest[sensor=a]", "ingest[sensor=b]", "study"]
+    assert inst["ingest[sensor=b]"].param_keys == ["data.root", "data.source"]
+    assert inst["study"].inputs["all"] == {"a": "ingest[sensor=a]", "b": "ingest[sensor=b]"}
+    none = listing_graph.expand({"data": {"source": "none", "root": ""}})
+    assert list(none) == ["study"] and none["study"].inputs["all"] == {}
+    g = Graph()
+    g.node("pairs", "m:p", grid={"s": Listing("lister_mod:sensors", {"root": "data.root"}, {"source": "",
+                                                                                       "prefix": "x"})})
+    assert list(g.expand({"data": {"root": "a:b"}})) == ["pairs[s=xa]", "pairs[s=xb]"]
+    with pytest.raises(PipelineError, match=r"'ingest' has no instance for these params \(its grid "
+                                            r"lister_mod:sensors\(data.source, data.root\) is empty\)"):
+        listing_graph.select(none, ["ingest"])
+
+
+@pytest.mark.parametrize("source,message", [
+    ("bad", r"^no sensors under x$"),
+    ("crash", r"^node 'ingest' grid 'sensor': lister_mod:sensors failed: ZeroDivisionError: boom$"),
+    ("tuple", r"^node 'ingest' grid 'sensor': lister_mod:sensors returned tuple, not a list$"),
+])
+def test_listing_failures_are_one_line(listing_graph, source, message):
+    with pytest.raises(PipelineError, match=message):
+        listing_graph.expand({"data": {"source": source, "root": "x"}})
+
+
+def test_listing_must_name_an_importable_function():
+    from pipeline.graph import Listing
+    g = Graph()
+    with pytest.raises(PipelineError, match=r"Listing func must be 'module:function', got 'nomodule'"):
+        g.node("x", "m:f", grid={"s": Listing("nomodule", {})})
+    g.node("y", "m:f", grid={"s": Listing("no_such_module_here:f", {})})
+    with pytest.raises(PipelineError, match=r"^node 'y' grid 's': cannot import 'no_such_module_here:f': "):
+        g.expand({})

@@ -251,7 +251,7 @@ def test_curves_with_a_constant_term_divide_as_they_are():
     # 2 * 0.5 / 0.3
     np.testing.assert_allclose(label_scale(depth, loading, source, target),
                                [2.0, 1.5 / 1.75, 3.0 / 3.5, 1.0, 1.0 / 0.3], rtol=1e-12)
-    cal = {"loading_coef": np.array([1.0, 2.0, 0.5]), "unloading_coef": [0.0, 1.0, -0.2]}
+    cal = {"loading_coefficients": np.array([1.0, 2.0, 0.5]), "unloading_coefficients": [0.0, 1.0, -0.2]}
     assert curves_from_calibration(cal) == source
     assert Curves.from_dict(source.as_dict()) == source
 
