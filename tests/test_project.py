@@ -38,13 +38,13 @@ def test_profiles_load(profile):
 def test_allpairs_adds_pairs_and_changes_nothing_else():
     """The allpairs profile runs every ordered pair of the 12 simulation patterns and of the
     default profile's twins; every node instance the default has keeps its params there (so a
-    default store serves it), except the studies, whose pair lists grow."""
+    default store serves it), except the studies and the ablation, whose pair lists grow."""
     from itertools import permutations
     project = find_project(ROOT)
     graph = project.load_graph()
     base = graph.expand(P.load(project.params_file, None, [], project.profiles_dir))
     every = graph.expand(P.load(project.params_file, "allpairs", [], project.profiles_dir))
-    studies = {"sim_m2m", "homo", "material", "hetero"}
+    studies = {"sim_m2m", "homo", "material", "hetero", "ablation"}
     changed = sorted(n for n, inst in base.items()
                      if n not in studies and (n not in every or every[n].params != inst.params))
     assert changed == []

@@ -199,12 +199,13 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
 
 def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, config: Mapping,
                       steps: int, batch_size: int, lr: float, finetune_steps: int,
-                      train_indenters: Sequence[str] | None = None, checkpoint: str | None = None) -> dict:
+                      train_indenters: Sequence[str] | None = None, source: str = "", target: str = "",
+                      checkpoint: str | None = None) -> dict:
     """Node `transfer_seed[source,target,seed]`: `transfer`'s genforce_comp trained again from
     another seed, on the same translation with the same compensated labels (the curves
     `transfer` records) and the same two-stage schedule: the seeds the ablation's spread is
-    measured over.  Returns genforce_comp weights and attrs {config, source, target, seed,
-    history}."""
+    measured over.  source, target: the fan-out's values, which `transfer` records too.
+    Returns genforce_comp weights and attrs {config, source, target, seed, history}."""
     from stages.force.model import to_arrays
     from stages.force.train import fit_two_stage, make_sequences
     info = attrs_of(transfer)
