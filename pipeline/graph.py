@@ -36,7 +36,8 @@ _REF = re.compile(r"^(?P<node>[A-Za-z_][A-Za-z0-9_]*)(\[(?P<sel>[^\]]*)\])?$")
 class Listing:
     """Grid values listed at plan time by `func` ("module:function", imported by path like a
     node's function), called with the values of `params` (argument -> dotted params key) and
-    the constants `args` as keyword arguments; it returns the list.  It runs whenever the graph
+    the constants `args` as keyword arguments; it returns the list.  As a node's param, its
+    value (a list or a mapping) is the param's, and "@arg" selectors may read it.  It runs whenever the graph
     expands (every verb, `status` included), so it must be fast and import nothing heavy: list
     folders, not read data.  An exception whose class sets `user_error = True` is reported as
     one line (exit 2)."""
@@ -54,7 +55,7 @@ class Node:
     name: str
     func: str
     inputs: dict[str, str] = field(default_factory=dict)
-    params: dict[str, str] = field(default_factory=dict)
+    params: dict[str, Any] = field(default_factory=dict)  # arg -> params key or Listing
     grid: dict[str, Any] = field(default_factory=dict)   # var -> params key(s), literal list or Listing
     version: str | None = None       # overrides the code fingerprint when set
     source: bool = False             # captured data: never re-run automatically
@@ -225,6 +226,10 @@ class Graph:
         env = {k: _fmt(v) for k, v in bindings}
         resolved, keys = {}, []
         for arg, key in node.params.items():
+            if isinstance(key, Listing):
+                resolved[arg] = _listed(node.name, arg, key, params, kinds=(list, dict))
+                keys += [k for k in key.params.values() if k not in keys]
+                continue
             dotted = key.format(**env)
             try:
                 resolved[arg] = P.get(params, dotted)
@@ -268,13 +273,14 @@ class Graph:
                                         f"variable {sorted(unknown)}")
                 within = {}             # var -> the values a "var=@params.key" selector allows
                 for k, v in sel.items():
-                    if v.startswith("@"):
-                        got = P.get(params, v[1:])
+                    if v.startswith("@"):   # a node param of this instance, else a params key
+                        got = resolved[v[1:]] if v[1:] in resolved else P.get(params, v[1:])
                         if not isinstance(got, list):
                             raise PipelineError(f"node '{node.name}' input '{arg}': {v[1:]} must be a "
                                                 f"list to select {up_name}'s {k}, got {type(got).__name__}")
                         within[k] = {_fmt(x) for x in got}
-                        inst.param_keys.append(v[1:])
+                        if v[1:] not in resolved:
+                            inst.param_keys.append(v[1:])
 
                 def chosen(c):
                     b = dict(c.bindings)
@@ -342,8 +348,8 @@ class Graph:
         return [n for n in instances if n in need]
 
 
-def _listed(node: str, entry: str, spec: Listing, params: dict) -> list:
-    """The values a Listing grid entry's function returns for these params."""
+def _listed(node: str, entry: str, spec: Listing, params: dict, kinds=(list,)):
+    """The values a Listing (grid entry or node param) returns for these params."""
     kwargs = {**spec.args, **{arg: P.get(params, key) for arg, key in spec.params.items()}}
     module, _, name = spec.func.partition(":")
     try:
@@ -359,7 +365,7 @@ def _listed(node: str, entry: str, spec: Listing, params: dict) -> list:
             raise PipelineError(str(exc)) from None
         raise PipelineError(f"node '{node}' grid '{entry}': {spec.func} failed: "
                             f"{type(exc).__name__}: {exc}") from None
-    if not isinstance(values, list):
+    if not isinstance(values, kinds):
         raise PipelineError(f"node '{node}' grid '{entry}': {spec.func} returned "
-                            f"{type(values).__name__}, not a list")
+                            f"{type(values).__name__}, not a {' or '.join(k.__name__ for k in kinds)}")
     return values

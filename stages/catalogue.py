@@ -97,6 +97,12 @@ def transfer_pairs(sensors: Mapping, studies: Mapping) -> list[list[str]]:
     return out
 
 
+def image_pairs(sensors: Mapping, studies: Mapping) -> list[list[str]]:
+    """Every pair some study scores the images of: sim-m2m's and the force studies'."""
+    out = pairs(sensors, studies, "sim-m2m") if "sim-m2m" in studies else []
+    return out + [p for p in transfer_pairs(sensors, studies) if p not in out]
+
+
 def active(sensors: Mapping, studies: Mapping, which=STUDIES) -> list[str]:
     """The sensors some study of `which` takes part with, in catalogue order."""
     used = {n for study in which if study in studies for n in members(sensors, studies, study)}

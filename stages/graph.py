@@ -7,6 +7,17 @@ from pipeline import Graph, Listing
 
 GRAPH = Graph()
 
+# which sensors each node runs on, from the sensor catalogue (params `sensors`, `studies`)
+_CAT = {"sensors": "sensors", "studies": "studies"}
+
+
+def _cat(func: str, **args) -> Listing:
+    return Listing(f"stages.catalogue:{func}", _CAT, args)
+
+
+def _members(study: str) -> Listing:
+    return _cat("members", study=study)
+
 # -- simulation twin: shapes and where they press ---------------------------------------
 GRAPH.node("indenters", "stages.sim.indenters:indenter_set",
            params={"names": "indenters.names", "stl_dir": "indenters.stl_dir", "stl_tip": "indenters.stl_tip"},
@@ -23,7 +34,7 @@ GRAPH.node("collection_trajectory", "stages.sim.trajectory:collection_trajectory
 GRAPH.node("calibration_trajectory", "stages.sim.trajectory:calibration_trajectory",
            params={k: f"calibration_trajectory.{k}" for k in (
                "max_depth_mm", "n_steps", "repetitions", "indenter", "rate_hz")},
-           description="3 indentations to d_max and back, then a shear leg, for material compensation")
+           description="3 indentations to d_max and back, for material compensation")
 
 # -- marker representation ----------------------------------------------------------------
 GRAPH.node("patterns", "stages.markers.patterns:reference_set",
@@ -37,12 +48,12 @@ GRAPH.node("deform", "stages.sim.deform:deform_sequence",
            params={"spec": "sensors.{sensor}", "materials": "materials",
                    "contacts_per_indenter": "deform.collection_contacts_per_indenter",
                    "frame_stride": "deform.collection_frame_stride"},
-           grid={"sensor": "deform.sensors"},
-           description="FEM-lite pad deformation and force labels along the sensor's trajectory")
+           grid={"sensor": _cat("bodies")},
+           description="FEM-lite pad deformation and force labels along a sensor body's trajectory")
 GRAPH.node("calibrate", "stages.sim.deform:calibrate",
            inputs={"indenters": "indenters", "trajectory": "calibration_trajectory"},
            params={"spec": "sensors.{sensor}", "materials": "materials"},
-           grid={"sensor": "calibrate.sensors"},
+           grid={"sensor": _cat("bodies", force_only=True)},
            description="force vs normalised depth, loading and unloading, for material compensation")
 GRAPH.node("contact_check", "stages.sim.checks:contact_check",
            params={"spec": "sensors.sim", "materials": "materials",
@@ -51,20 +62,20 @@ GRAPH.node("contact_check", "stages.sim.checks:contact_check",
 
 # -- marker images: render, raw signals, the unified binary marker representation ---------
 GRAPH.node("render", "stages.markers.render:render_sequence",
-           inputs={"deform": "deform[sensor={spec[sensor]}]", "patterns": "patterns"},
-           params={"spec": "skins.{skin}", "size": "render.size", "spp": "render.spp",
+           inputs={"deform": "deform[sensor={spec[body]}]", "patterns": "patterns"},
+           params={"spec": "sensors.{skin}", "size": "render.size", "spp": "render.spp",
                    "backend": "render.backend"},
-           grid={"skin": "render.skins"},
+           grid={"skin": _cat("by_source", source="render")},
            description="Mitsuba render of the deformed skin: raw camera look + ground-truth marker mask")
 GRAPH.node("taxels", "stages.markers.uskin:taxel_sequence",
-           inputs={"deform": "deform[sensor={spec[sensor]}]"},
-           params={"spec": "skins.{skin}"},
-           grid={"skin": "taxels.skins"},
+           inputs={"deform": "deform[sensor={spec[body]}]"},
+           params={"spec": "sensors.{skin}"},
+           grid={"skin": _cat("by_source", source="taxels")},
            description="uSkin 4x4 taxel signals (raw counts near 32768) from the pad's displacement")
 GRAPH.node("markers", "stages.markers.unify:marker_sequence",
            inputs={"source": "{spec[source]}[skin={skin}]"},
-           params={"spec": "skins.{skin}", "segmentation": "segmentation"},
-           grid={"skin": "render.skins + taxels.skins"},
+           params={"spec": "sensors.{skin}", "segmentation": "segmentation"},
+           grid={"skin": _cat("active")},
            description="binary marker images: segmentation of camera looks, signal-to-marker of taxels")
 
 # -- hardware: capture (source nodes: run only when named) ------------------------------------
@@ -102,8 +113,8 @@ GRAPH.node("authors_calibration", "stages.capture.authors_calibration:authors_ca
 
 # -- M2M translation: one generator for every pair, a training-free baseline, image metrics ----
 GRAPH.node("m2m_sim", "stages.m2m.nodes:pretrain",
-           inputs={"markers": "markers[skin=@m2m.pretrain.skins]"},
-           params={"skins": "m2m.pretrain.skins", "train_indenters": "splits.m2m_indenters",
+           inputs={"markers": "markers[skin=@skins]"},
+           params={"skins": _members("sim-m2m"), "train_indenters": "splits.m2m_indenters",
                    "size": "render.size", "steps": "m2m.pretrain.steps",
                    "batch_size": "m2m.pretrain.batch_size", "lr": "m2m.pretrain.lr",
                    "seed": "m2m.pretrain.seed", "width": "m2m.pretrain.width",
@@ -112,8 +123,8 @@ GRAPH.node("m2m_sim", "stages.m2m.nodes:pretrain",
                    "source_gate": "m2m.pretrain.source_gate"},
            description="M2M generator trained from scratch on the 12 simulation patterns")
 GRAPH.node("m2m", "stages.m2m.nodes:finetune",
-           inputs={"base": "m2m_sim", "markers": "markers[skin=@m2m.finetune.skins]"},
-           params={"skins": "m2m.finetune.skins", "train_indenters": "splits.m2m_indenters",
+           inputs={"base": "m2m_sim", "markers": "markers[skin=@skins]"},
+           params={"skins": _cat("force_sensors"), "train_indenters": "splits.m2m_indenters",
                    "pairs_per_skin": "m2m.finetune.pairs_per_skin", "steps": "m2m.finetune.steps",
                    "batch_size": "m2m.finetune.batch_size", "lr": "m2m.finetune.lr",
                    "seed": "m2m.finetune.seed", "change_share": "m2m.finetune.change_share"},
@@ -124,10 +135,9 @@ GRAPH.node("translate_sim", "stages.m2m.nodes:translate_sequence",
            inputs={"model": "m2m_sim", "source_markers": "markers[skin={source}]",
                    "target_markers": "markers[skin={target}]"},
            params={**_EVAL, "sampler_steps": "m2m.sampler_steps"},
-           grid={"source,target": "sim_m2m.pairs"},
+           grid={"source,target": _cat("pairs", study="sim-m2m")},
            description="a simulation pattern's sequence in another pattern's style")
-_TRANSFER_PAIRS = ("homo.groups.pairs + material.groups.hard_to_soft + material.groups.soft_to_hard"
-                   " + hetero.groups.pairs")
+_TRANSFER_PAIRS = _cat("transfer_pairs")
 GRAPH.node("translate", "stages.m2m.nodes:translate_sequence",
            inputs={"model": "m2m", "source_markers": "markers[skin={source}]",
                    "target_markers": "markers[skin={target}]"},
@@ -138,18 +148,18 @@ GRAPH.node("flow_warp", "stages.m2m.nodes:flow_warp_sequence",
            inputs={"source_markers": "markers[skin={source}]",
                    "target_markers": "markers[skin={target}]"},
            params=_EVAL,
-           grid={"source,target": "sim_m2m.pairs + " + _TRANSFER_PAIRS},
+           grid={"source,target": _cat("image_pairs")},
            description="training-free baseline: the source's marker motion warps the target's reference")
 GRAPH.node("features", "stages.m2m.nodes:image_features",
            inputs={"markers": "markers[skin={skin}]"}, params=_EVAL,
-           grid={"skin": "render.skins + taxels.skins"},
+           grid={"skin": _cat("active")},
            description="InceptionV3 features of a skin's scored frames (FID/KID)")
 # the simulation patterns' features and flow-warps only, so that the study needs no twin
-_SIMS = "@m2m.pretrain.skins"
-GRAPH.node("sim_m2m", "stages.m2m.nodes:image_study",
-           inputs={"features": f"features[skin={_SIMS}]", "translated": "translate_sim[*]",
-                   "warped": f"flow_warp[source={_SIMS},target={_SIMS}]", "markers": f"markers[skin={_SIMS}]"},
-           params={"study": "sim_m2m.study", "pairs": "sim_m2m.pairs", "kid_subset": "m2m.kid_subset"},
+GRAPH.node("sim_m2m", "stages.studies:sim_m2m_study",
+           inputs={"features": "features[skin=@skins]", "translated": "translate_sim[*]",
+                   "warped": "flow_warp[source=@skins,target=@skins]", "markers": "markers[skin=@skins]"},
+           params={"skins": _members("sim-m2m"), "pairs": _cat("pairs", study="sim-m2m"),
+                   "kid_subset": "m2m.kid_subset"},
            description="study sim-m2m (paper Fig. 3): FID/KID before / m2m / flow_warp, heatmaps, t-SNE, "
                        "and how well each keeps the deformation (marker motion error)")
 
@@ -160,17 +170,17 @@ _FIT = {"config": "force.config", "steps": "force.steps", "batch_size": "force.b
 GRAPH.node("own", "stages.force.fit:fit_own",
            inputs={"markers": "markers[skin={skin}]"},
            params={**{k: v for k, v in _FIT.items() if k != "finetune_steps"}, "seed": "force.seed"},
-           grid={"skin": "force.skins"},
+           grid={"skin": _cat("force_sensors")},
            description="force regressor on a skin's own labels: source-only model and oracle")
 GRAPH.node("transfer", "stages.force.fit:fit_transfer",
            inputs={"translated": "translate[source={source},target={target}]",
-                   "source_calibration": "calibrate[sensor={source_spec[sensor]}]",
-                   "target_calibration": "calibrate[sensor={target_spec[sensor]}]",
+                   "source_calibration": "calibrate[sensor={source_spec[body]}]",
+                   "target_calibration": "calibrate[sensor={target_spec[body]}]",
                    "target_markers": "markers[skin={target}]",
                    "captured_calibrations": "capture_calibration[*]"},
            params={**_FIT, "seed": "force.seed", "additions": "plus.additions",
                    "pairs": "m2m.finetune.pairs_per_skin",
-                   "source_spec": "skins.{source}", "target_spec": "skins.{target}"},
+                   "source_spec": "sensors.{source}", "target_spec": "sensors.{target}"},
            grid={"source,target": _TRANSFER_PAIRS},
            description="GenForce: regressors on translated images with source labels, raw (genforce), "
                        "compensated (genforce_comp) and with our additions (genforce_plus)")
@@ -178,14 +188,14 @@ _STUDY = {"features": "features[*]", "translated": "translate[*]", "warped": "fl
           "own": "own[*]", "transfer": "transfer[*]", "markers": "markers[*]"}
 _STUDY_PARAMS = {"test_indenters": "splits.test_indenters", "val_indenters": "splits.val_indenters",
                  "kid_subset": "m2m.kid_subset", "trace_frames": "force.trace_frames"}
-GRAPH.node("homo", "stages.studies:transfer_study", inputs=_STUDY,
-           params={**_STUDY_PARAMS, "study": "homo.study", "groups": "homo.groups"},
+GRAPH.node("homo", "stages.studies:homo_study", inputs=_STUDY,
+           params={**_STUDY_PARAMS, "groups": _cat("groups", study="homo")},
            description="study homo (paper Fig. 4): the five GelSight twins")
-GRAPH.node("material", "stages.studies:transfer_study", inputs=_STUDY,
-           params={**_STUDY_PARAMS, "study": "material.study", "groups": "material.groups"},
+GRAPH.node("material", "stages.studies:material_study", inputs=_STUDY,
+           params={**_STUDY_PARAMS, "groups": _cat("groups", study="material")},
            description="study material (paper Fig. 5): seven elastomers, with and without compensation")
-GRAPH.node("hetero", "stages.studies:transfer_study", inputs=_STUDY,
-           params={**_STUDY_PARAMS, "study": "hetero.study", "groups": "hetero.groups"},
+GRAPH.node("hetero", "stages.studies:hetero_study", inputs=_STUDY,
+           params={**_STUDY_PARAMS, "groups": _cat("groups", study="hetero")},
            description="study hetero (paper Fig. 6): GelSight, TacTip, uSkin 3-axis and z-only")
 
 # -- the ablation of genforce_plus: run only when named (`pipeline run ablation`) -------------
@@ -198,7 +208,8 @@ GRAPH.node("transfer_seed", "stages.force.fit:fit_transfer_seed",
 GRAPH.node("ablation", "stages.force.study:ablation_study",
            inputs={"transfer": "transfer[*]", "seeds": "transfer_seed[*]", "translated": "translate[*]",
                    "markers": "markers[*]"},
-           params={"homo": "homo.groups", "material": "material.groups", "hetero": "hetero.groups",
+           params={"homo": _cat("groups", study="homo"), "material": _cat("groups", study="material"),
+                   "hetero": _cat("groups", study="hetero"),
                    "val_indenters": "splits.val_indenters",
                    "train_indenters": "splits.train_indenters", "pairs": "m2m.finetune.pairs_per_skin",
                    "additions": "plus.additions"},
@@ -213,7 +224,7 @@ GRAPH.node("control", "stages.control.nodes:control_node",
            params={"model_pair": "control.model_pair", "objects": "control.objects",
                    "grasp": "control.grasp", "slip": "control.slip",
                    # the fingers carry the model's target skin: its gel, look and segmentation
-                   "skins": "skins", "sensors": "sensors", "materials": "materials",
+                   "sensors": "sensors", "materials": "materials",
                    "segmentation": "segmentation", "backend": "render.backend", "size": "render.size",
                    "duration_s": "control.duration_s", "pull": "control.pull", "seed": "control.seed",
                    "reference_seed": "control.reference_seed",

@@ -58,3 +58,24 @@ def transfer_study(*, study: str, groups: Mapping[str, list], features: Mapping,
                                       ("force", force.pop("timing", None))) if t}
     return {"images": images, "force": force, "figures": figures, "metrics": metrics, "attrs": attrs,
             "timing": timing}
+
+
+def homo_study(**kw) -> dict:
+    """Node `homo` (paper Fig. 4): the GelSight twins."""
+    return transfer_study(study="homo", **kw)
+
+
+def material_study(**kw) -> dict:
+    """Node `material` (paper Fig. 5): elastomers of different hardness."""
+    return transfer_study(study="material", **kw)
+
+
+def hetero_study(**kw) -> dict:
+    """Node `hetero` (paper Fig. 6): GelSight, TacTip and uSkin."""
+    return transfer_study(study="hetero", **kw)
+
+
+def sim_m2m_study(*, skins: list, **kw) -> dict:
+    """Node `sim_m2m` (paper Fig. 3): image metrics of the simulation patterns' translations."""
+    from stages.m2m.nodes import image_study
+    return image_study(study="sim-m2m", **kw)

@@ -3,7 +3,6 @@ import importlib.util
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -29,20 +28,11 @@ def concat(chunks) -> dict:
     return out
 
 
-def _merge(base: dict, overlay: dict) -> None:
-    for k, v in overlay.items():
-        if isinstance(v, dict):
-            _merge(base[k], v)
-        else:
-            base[k] = v
-
-
 def load_params(profile: str | None = None) -> dict:
-    """params.yaml with a profile's overrides merged in (profiles only change values)."""
-    params = yaml.safe_load((ROOT / "params.yaml").read_text())
-    if profile:
-        _merge(params, yaml.safe_load((ROOT / "params" / f"{profile}.yaml").read_text()))
-    return params
+    """params.yaml with a profile's overrides merged in and `extends` resolved, as the pipeline
+    loads them."""
+    from pipeline.params import load
+    return load(ROOT / "params.yaml", profile, [], ROOT / "params")
 
 
 def load_script(name: str):

@@ -50,16 +50,16 @@ def oracle_factory(*, finger: str = "left", noise_N: float = 0.0, lag_frames: in
 PREDICTOR = "genforce_plus"       # the transfer's model the fingers read
 
 
-def control_node(*, model, model_pair, skins: Mapping, sensors: Mapping, materials: Mapping,
+def control_node(*, model, model_pair, sensors: Mapping, materials: Mapping,
                  patterns: Mapping, segmentation: Mapping | None = None, backend: str = "auto",
                  supervised=None, **study) -> dict:
-    """Node `control`: the fingers carry the model's target skin, model_pair[1]: its sensor's
-    gel (sensors.<skin's sensor>, materials.<its material>) and its image chain (SkinCamera:
-    the skin's look rendered and segmented as its training frames were).  supervised: the
-    skin's own-label model (own[skin]), run through the same episodes as the reference a
-    transferred model is measured against.  reference_seed (control.reference_seed): null for
-    the skin's own no-contact reference, or an integer camera-noise seed for a fresh take of it.
-    The rest as control_study."""
+    """Node `control`: the fingers carry the model's target sensor, model_pair[1]: its gel
+    (its sensors entry's mechanics, materials.<its material>) and its image chain (SkinCamera:
+    its look rendered and segmented as its training frames were).  supervised: the sensor's
+    own-label model (own[skin]), run through the same episodes as the reference a transferred
+    model is measured against.  reference_seed (control.reference_seed): null for the sensor's
+    own no-contact reference, or an integer camera-noise seed for a fresh take of it.  The rest
+    as control_study."""
     from stages.common import InputError
     from stages.markers.render import marker_set
 
@@ -67,24 +67,19 @@ def control_node(*, model, model_pair, skins: Mapping, sensors: Mapping, materia
     if ref_seed is not None and (isinstance(ref_seed, bool) or not isinstance(ref_seed, int) or ref_seed < 0):
         raise InputError(f"control: reference_seed must be a non-negative integer or null, got {ref_seed!r}")
     target = str(model_pair[1])
-    if target not in skins:
-        raise InputError(f"control: model_pair target {target!r} is not a skin ({', '.join(skins)})")
-    spec = skins[target]
+    if target not in sensors:
+        raise InputError(f"control: model_pair target {target!r} is not a sensor ({', '.join(sensors)})")
+    spec = sensors[target]
     look = spec.get("look")
     if spec.get("source", "render") != "render" or look not in ("none", "gelsight"):
-        raise InputError(f"control: the fingers carry skin {target!r} (look {look!r}): the gripper "
-                         "twin has flat camera pads, skins of look gelsight or none")
-    if spec["sensor"] not in sensors:
-        raise InputError(f"control: skin {target!r} rides on sensor {spec['sensor']!r}, not in sensors")
-    sensor = sensors[spec["sensor"]]
-    if float(sensor.get("curvature_radius_mm", 0.0)) > 0:
-        raise InputError(f"control: skin {target!r} rides on {spec['sensor']!r}, a dome: the gripper "
-                         "twin's pads are flat")
-    if sensor.get("material") not in materials:
-        raise InputError(f"control: sensor {spec['sensor']!r} has material {sensor.get('material')!r}, "
-                         "not in materials")
+        raise InputError(f"control: the fingers carry sensor {target!r} (look {look!r}): the gripper "
+                         "twin has flat camera pads, sensors of look gelsight or none")
+    if float(spec.get("curvature_radius_mm", 0.0)) > 0:
+        raise InputError(f"control: sensor {target!r} is a dome: the gripper twin's pads are flat")
+    if spec.get("material") not in materials:
+        raise InputError(f"control: sensor {target!r} has material {spec.get('material')!r}, not in materials")
     return control_study(model=model, supervised=supervised, model_pair=model_pair,
-                         sensor=sensor, material=materials[sensor["material"]], skin=spec,
+                         sensor=spec, material=materials[spec["material"]], skin=spec,
                          skin_name=target, markers=marker_set(patterns, spec["pattern"]),
                          segmentation=segmentation, backend=backend, **study)
 

@@ -81,12 +81,12 @@ def fit_own(*, markers: Mapping, skin: str, train_indenters: Sequence[str], conf
 
 def calibrations(twins, specs, captured: Mapping | None) -> tuple[tuple, dict]:
     """The (source, target) calibrations a transfer compensates with: each sensor's captured
-    calibration (captured: sensor -> capture_calibration artifact) where there is one, else its
-    twin's calibrate artifact; and {"source"|"target": "capture_calibration[sensor=...]"} for
-    the captured ones (empty without)."""
+    calibration (captured: sensor body -> capture_calibration artifact) where there is one, else
+    its twin's calibrate artifact; and {"source"|"target": "capture_calibration[sensor=...]"}
+    for the captured ones (empty without)."""
     chosen, which = [], {}
     for end, twin, spec in zip(("source", "target"), twins, specs):
-        sensor = None if spec is None else spec.get("sensor")
+        sensor = None if spec is None else spec.get("body")
         if captured and sensor in captured:
             chosen.append(captured[sensor])
             which[end] = f"capture_calibration[sensor={sensor}]"
