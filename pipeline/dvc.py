@@ -1,8 +1,10 @@
-"""dvc.yaml generated from the DAG, one dvc stage per node instance.
+"""dvc.yaml generated from the DAG: a dvc stage per node, a `foreach` over its instances.
 
-Each stage runs `pipeline run '<instance>'`; its out is the instance's ref file
-(key + digest, rewritten only when it changes), its deps the node's source files and
-its upstreams' ref files, its params the dotted keys it reads from params.yaml.
+Each instance runs `pipeline run '<instance>'`; its out is the instance's ref file (key +
+digest, rewritten only when it changes), its deps the node's source files and its upstreams'
+ref files, its params the dotted keys it reads from params.yaml.  A node with one instance is a
+plain stage; a node with several is one `foreach` stage whose `do` lists what its instances
+share once and interpolates what differs (`${item.<field>}`), so a reader sees the node once.
 """
 from __future__ import annotations
 
@@ -22,22 +24,87 @@ def stage_name(instance: str) -> str:
                   .replace(",", "__").replace("=", "-"))
 
 
-def export(scheduler, project) -> str:
+def _stage(scheduler, project, name, inst) -> dict:
     root = project.root
     store_rel = os.path.relpath(project.store_dir, root)
-    stages = {}
+    ref = f"{store_rel}/refs/{safe_name(name)}.json"
+    files = [os.path.relpath(p, root) for p in scheduler.fingerprinter.files(inst.node.func)] \
+        if not inst.node.source else []
+    # upstream refs in the node's input order (so that instances line up), then its code
+    deps = list(dict.fromkeys(f"{store_rel}/refs/{safe_name(u)}.json" for u in inst.upstream()))
+    deps += sorted(set(files) - set(deps))
+    stage = {"cmd": f"pipeline run '{name}'"}
+    if deps:
+        stage["deps"] = deps
+    if inst.param_keys:
+        stage["params"] = sorted(set(inst.param_keys))
+    stage["outs"] = [{ref: {"cache": False}}]
+    if inst.node.source:
+        stage["frozen"] = True  # captured data: never re-run by dvc either
+    return stage
+
+
+def _templated(value: str, bindings: dict) -> str:
+    """`value` with each grid value of the instance written as ${item.<var>}: after `=` in
+    instance and ref names (`skin=<value>]`, `...=<value>.json`) and as a params key's last
+    part (`sensors.<value>`)."""
+    for var, v in bindings.items():
+        v = str(v).lower() if isinstance(v, bool) else str(v)
+        for end in (",", "]", ".json", "'"):
+            value = value.replace(f"={v}{end}", f"=${{item.{var}}}{end}")
+        if value.endswith(f".{v}"):
+            value = value[:-len(str(v))] + f"${{item.{var}}}"
+    return value
+
+
+def _foreach(stages: dict[str, tuple[dict, dict]]) -> dict:
+    """One `foreach` stage for instance stages (key -> (stage, grid bindings)) whose lists have
+    equal lengths: what they share is written once, what follows from the grid values is
+    written with ${item.<var>}, the rest is a field of each item."""
+    first = next(iter(stages.values()))[0]
+    items = {key: {k: v for k, v in bindings.items()} for key, (_, bindings) in stages.items()}
+
+    def shared(values: dict[str, str], field: str) -> str:
+        if len(set(values.values())) == 1:
+            return next(iter(values.values()))
+        forms = {_templated(v, dict(stages[key][1])) for key, v in values.items()}
+        if len(forms) == 1:
+            return forms.pop()
+        for key, v in values.items():
+            items[key][field] = v
+        return f"${{item.{field}}}"
+
+    do = {"cmd": shared({k: st["cmd"] for k, (st, _) in stages.items()}, "cmd")}
+    for k in ("deps", "params"):
+        if k in first:
+            do[k] = [shared({key: st[k][i] for key, (st, _) in stages.items()}, f"{k[0]}{i}")
+                     for i in range(len(first[k]))]
+    out = shared({key: next(iter(st["outs"][0])) for key, (st, _) in stages.items()}, "out")
+    do["outs"] = [{out: {"cache": False}}]
+    if first.get("frozen"):
+        do["frozen"] = True
+    return {"foreach": items, "do": do}
+
+
+def export(scheduler, project) -> str:
+    by_node: dict[str, dict[str, dict]] = {}
     for name, inst in scheduler.instances.items():
-        ref = f"{store_rel}/refs/{safe_name(name)}.json"
-        deps = [os.path.relpath(p, root) for p in scheduler.fingerprinter.files(inst.node.func)] \
-            if not inst.node.source else []
-        deps += [f"{store_rel}/refs/{safe_name(u)}.json" for u in inst.upstream()]
-        stage = {"cmd": f"pipeline run '{name}'"}
-        if deps:
-            stage["deps"] = sorted(set(deps))
-        if inst.param_keys:
-            stage["params"] = sorted(set(inst.param_keys))
-        stage["outs"] = [{ref: {"cache": False}}]
-        if inst.node.source:
-            stage["frozen"] = True  # captured data: never re-run by dvc either
-        stages[stage_name(name)] = stage
+        key = stage_name("__".join(str(v).lower() if isinstance(v, bool) else str(v) for _, v in inst.bindings)) \
+            or stage_name(name)
+        by_node.setdefault(inst.node.name, {})[key] = (_stage(scheduler, project, name, inst),
+                                                       {k: v for k, v in inst.bindings})
+    stages = {}
+    for node, instances in by_node.items():
+        # instances whose lists have the same lengths share a foreach (e.g. a transfer between
+        # sensors on one body lists its calibration once): one stage per such group
+        groups: dict[tuple, dict[str, tuple]] = {}
+        for key, (stage, bindings) in instances.items():
+            shape = tuple((k, len(stage[k])) for k in ("deps", "params") if k in stage)
+            groups.setdefault(shape, {})[key] = (stage, bindings)
+        for n, group in enumerate(groups.values()):
+            if len(group) > 1:
+                stages[stage_name(node) + (f"_{n + 1}" if n else "")] = _foreach(group)
+            else:
+                for stage, _ in group.values():
+                    stages[stage_name(stage["cmd"][len("pipeline run '"):-1])] = stage
     return HEADER + yaml.safe_dump({"stages": stages}, sort_keys=False, width=1000)

@@ -184,19 +184,20 @@ GRAPH.node("transfer", "stages.force.fit:fit_transfer",
            grid={"source,target": _TRANSFER_PAIRS},
            description="GenForce: regressors on translated images with source labels, raw (genforce), "
                        "compensated (genforce_comp) and with our additions (genforce_plus)")
-_STUDY = {"features": "features[*]", "translated": "translate[*]", "warped": "flow_warp[*]",
-          "own": "own[*]", "transfer": "transfer[*]", "markers": "markers[*]"}
+# each study reads only its own sensors' artifacts (node param `members`, the @ selectors)
+_STUDY = {"features": "features[skin=@members]", "markers": "markers[skin=@members]",
+          "translated": "translate[source=@members,target=@members]",
+          "warped": "flow_warp[source=@members,target=@members]",
+          "own": "own[skin=@members]", "transfer": "transfer[source=@members,target=@members]"}
 _STUDY_PARAMS = {"test_indenters": "splits.test_indenters", "val_indenters": "splits.val_indenters",
                  "kid_subset": "m2m.kid_subset", "trace_frames": "force.trace_frames"}
-GRAPH.node("homo", "stages.studies:homo_study", inputs=_STUDY,
-           params={**_STUDY_PARAMS, "groups": _cat("groups", study="homo")},
-           description="study homo (paper Fig. 4): the five GelSight twins")
-GRAPH.node("material", "stages.studies:material_study", inputs=_STUDY,
-           params={**_STUDY_PARAMS, "groups": _cat("groups", study="material")},
-           description="study material (paper Fig. 5): seven elastomers, with and without compensation")
-GRAPH.node("hetero", "stages.studies:hetero_study", inputs=_STUDY,
-           params={**_STUDY_PARAMS, "groups": _cat("groups", study="hetero")},
-           description="study hetero (paper Fig. 6): GelSight, TacTip, uSkin 3-axis and z-only")
+for _study, _what in (("homo", "study homo (paper Fig. 4): the five GelSight twins"),
+                      ("material", "study material (paper Fig. 5): elastomers of different hardness, "
+                                   "with and without compensation"),
+                      ("hetero", "study hetero (paper Fig. 6): GelSight, TacTip, uSkin")):
+    GRAPH.node(_study, f"stages.studies:{_study}_study", inputs=_STUDY,
+               params={**_STUDY_PARAMS, "members": _members(_study), "groups": _cat("groups", study=_study)},
+               description=_what)
 
 # -- the ablation of genforce_plus: run only when named (`pipeline run ablation`) -------------
 GRAPH.node("transfer_seed", "stages.force.fit:fit_transfer_seed",

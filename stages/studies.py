@@ -33,8 +33,10 @@ def group_means(metrics: Mapping[str, float], study: str, groups: Mapping[str, l
 
 def transfer_study(*, study: str, groups: Mapping[str, list], features: Mapping, translated: Mapping,
                    warped: Mapping, own: Mapping, transfer: Mapping, markers: Mapping,
-                   test_indenters: list, val_indenters: list, kid_subset: int, trace_frames: int) -> dict:
-    """One study over the pairs of all its groups (a pair in two groups is scored once)."""
+                   test_indenters: list, val_indenters: list, kid_subset: int, trace_frames: int,
+                   members: list | None = None) -> dict:
+    """One study over the pairs of all its groups (a pair in two groups is scored once);
+    members: the study's sensors, whose artifacts the inputs hold."""
     from stages.force.study import force_study
     from stages.m2m.nodes import image_study
     pairs: list[list[str]] = []

@@ -26,6 +26,7 @@ def pipeline(*args, check=True):
 def test_dvc_yaml_in_sync():
     p = pipeline("dvc", "--check", check=False)
     assert p.returncode == 0, "dvc.yaml is out of date: run `pipeline dvc` and commit it"
+    assert (ROOT / "dvc.yaml").stat().st_size <= 60_000        # a node per stage: readable
 
 
 @pytest.mark.parametrize("profile", ["default", "ci", "paper", "allpairs"])

@@ -122,10 +122,12 @@ def test_dvc_export_and_repro(toy):
     pytest.importorskip("dvc")
     cli(toy, "dvc")
     doc = yaml.safe_load((toy / "dvc.yaml").read_text())
-    stage = doc["stages"]["shifted__letter-a"]
-    assert stage["cmd"] == "pipeline run 'shifted[letter=a]'"
-    assert stage["params"] == ["letters", "offset.a"]
-    assert stage["deps"] == ["artifacts/refs/scaled.json", "toy/nodes.py"]
+    stage = doc["stages"]["shifted"]         # a node's instances: one foreach stage
+    assert stage["foreach"] == {"a": {"letter": "a"}, "b": {"letter": "b"}}
+    assert stage["do"]["cmd"] == "pipeline run 'shifted[letter=${item.letter}]'"
+    assert stage["do"]["params"] == ["letters", "offset.${item.letter}"]
+    assert stage["do"]["deps"] == ["artifacts/refs/scaled.json", "toy/nodes.py"]
+    assert stage["do"]["outs"] == [{"artifacts/refs/shifted@letter=${item.letter}.json": {"cache": False}}]
     assert doc["stages"]["scaled"]["deps"] == ["artifacts/refs/base.json", "toy/helpers.py", "toy/nodes.py"]
     assert cli(toy, "dvc", "--check").returncode == 0
     env = _env_with_bin()
@@ -138,8 +140,8 @@ def test_dvc_export_and_repro(toy):
     assert r.returncode == 0 and "Running stage" not in r.stdout
     (toy / "params.yaml").write_text((toy / "params.yaml").read_text().replace("b: 5.0", "b: 6.0"))
     r = subprocess.run(dvc + ["repro"], cwd=toy, env=env, capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0 and "Running stage 'shifted__letter-b'" in r.stdout
-    assert "Running stage 'shifted__letter-a'" not in r.stdout
+    assert r.returncode == 0 and "Running stage 'shifted@b'" in r.stdout
+    assert "Running stage 'shifted@a'" not in r.stdout
     (toy / "dvc.yaml").write_text("stages: {}\n")
     assert cli(toy, "dvc", "--check", check=False).returncode == 1
 
