@@ -42,7 +42,8 @@ import stages.markers.render as render                                          
 from benchmarks.summary import drain, record                                    # noqa: E402
 from stages.markers.mitsuba_backend import llvm_usable, mitsuba, thread_count   # noqa: E402
 from stages.markers.patterns import gelsight_pattern, pattern                   # noqa: E402
-from stages.markers.render import LABEL_KEYS, Renderer, render_sequence         # noqa: E402
+from stages.common import LABEL_KEYS                                             # noqa: E402
+from stages.markers.render import Renderer, render_sequence                     # noqa: E402
 
 GRID = 65
 DISTINCT = 24

@@ -1,9 +1,19 @@
-"""Small helpers every science package shares."""
+"""Small helpers every science package shares, and the contact-sequence schema."""
 from __future__ import annotations
 
 import contextlib
 import os
-from typing import Mapping
+from typing import Mapping, Sequence
+
+# The contact-sequence schema (DESIGN, "Science contracts"): beside `images` (N,H,W) and
+# `reference` (H,W), the per-frame arrays a sequence carries, each (N,...) along the frame
+# axis: forces (N,3) N and torques (N,3) N m, depth (N,) mm and its normalised depth, which
+# frames load the skin, the indenter tip's position (N,3) and lateral shift (N,2) mm, the
+# motion phase (0 press, 1 shear out, 2 shear back, 3 release), contact and indenter ids,
+# the location-paired frames (and their motion position), and `frame`, which names a location
+# alike in every sensor.  Every node that makes frames from frames copies the ones it has.
+LABEL_KEYS = ("force", "torque", "depth", "normalised_depth", "loading", "position", "shift", "phase",
+              "contact_id", "indenter_id", "paired", "paired_position", "frame")
 
 
 def attrs_of(art) -> dict:
@@ -26,6 +36,12 @@ def default_threads() -> int:
     threads), and on an idle machine it gains at most ~1.5x."""
     env = os.environ.get("GENFORCE_TORCH_THREADS", "").strip()
     return max(1, int(env)) if env else 1
+
+
+def check_option(what: str, value, options: Sequence) -> None:
+    """An option value a node cannot use is bad input: one line naming it and the options."""
+    if value not in tuple(options):
+        raise InputError(f"{what} must be one of {', '.join(map(str, options))}, got {value!r}")
 
 
 class InputError(ValueError):

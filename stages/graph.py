@@ -112,7 +112,7 @@ GRAPH.node("authors_calibration", "stages.capture.authors_calibration:authors_ca
            description="a sensor's material-compensation curves as the authors released them")
 
 # -- M2M translation: one generator for every pair, a training-free baseline, image metrics ----
-GRAPH.node("m2m_sim", "stages.m2m.nodes:pretrain",
+GRAPH.node("m2m_sim", "stages.m2m.fit:pretrain",
            inputs={"markers": "markers[skin=@skins]"},
            params={"skins": _members("sim-m2m"), "train_indenters": "splits.m2m_indenters",
                    "size": "render.size", "steps": "m2m.pretrain.steps",
@@ -122,7 +122,7 @@ GRAPH.node("m2m_sim", "stages.m2m.nodes:pretrain",
                    "change_share": "m2m.pretrain.change_share",
                    "source_gate": "m2m.pretrain.source_gate"},
            description="M2M generator trained from scratch on the 12 simulation patterns")
-GRAPH.node("m2m", "stages.m2m.nodes:finetune",
+GRAPH.node("m2m", "stages.m2m.fit:finetune",
            inputs={"base": "m2m_sim", "markers": "markers[skin=@skins]"},
            params={"skins": _cat("force_sensors"), "train_indenters": "splits.m2m_indenters",
                    "pairs_per_skin": "m2m.finetune.pairs_per_skin", "steps": "m2m.finetune.steps",
@@ -131,26 +131,26 @@ GRAPH.node("m2m", "stages.m2m.nodes:finetune",
            description="M2M fine-tuned to the twin sensors with a few location-paired frames each")
 _EVAL = {"eval_indenters": "splits.test_indenters", "val_indenters": "splits.val_indenters",
          "n_eval": "m2m.n_eval"}
-GRAPH.node("translate_sim", "stages.m2m.nodes:translate_sequence",
+GRAPH.node("translate_sim", "stages.m2m.translate:translate_sequence",
            inputs={"model": "m2m_sim", "source_markers": "markers[skin={source}]",
                    "target_markers": "markers[skin={target}]"},
            params={**_EVAL, "sampler_steps": "m2m.sampler_steps"},
            grid={"source,target": _cat("pairs", study="sim-m2m")},
            description="a simulation pattern's sequence in another pattern's style")
 _TRANSFER_PAIRS = _cat("transfer_pairs")
-GRAPH.node("translate", "stages.m2m.nodes:translate_sequence",
+GRAPH.node("translate", "stages.m2m.translate:translate_sequence",
            inputs={"model": "m2m", "source_markers": "markers[skin={source}]",
                    "target_markers": "markers[skin={target}]"},
            params={**_EVAL, "sampler_steps": "m2m.sampler_steps"},
            grid={"source,target": _TRANSFER_PAIRS},
            description="a calibrated sensor's sequence in an uncalibrated sensor's style")
-GRAPH.node("flow_warp", "stages.m2m.nodes:flow_warp_sequence",
+GRAPH.node("flow_warp", "stages.m2m.translate:flow_warp_sequence",
            inputs={"source_markers": "markers[skin={source}]",
                    "target_markers": "markers[skin={target}]"},
            params=_EVAL,
            grid={"source,target": _cat("image_pairs")},
            description="training-free baseline: the source's marker motion warps the target's reference")
-GRAPH.node("features", "stages.m2m.nodes:image_features",
+GRAPH.node("features", "stages.m2m.translate:image_features",
            inputs={"markers": "markers[skin={skin}]"}, params=_EVAL,
            grid={"skin": _cat("active")},
            description="InceptionV3 features of a skin's scored frames (FID/KID)")

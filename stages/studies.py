@@ -1,7 +1,7 @@
 """The transfer studies (paper Figs. 4-6): image metrics and force metrics of one study in one
 artifact, so its tables, heatmaps, radar plots and traces sit side by side in the report.
 
-`transfer_study` (nodes `homo`, `material`, `hetero`) runs stages.m2m.nodes.image_study (FID/KID
+`transfer_study` (nodes `homo`, `material`, `hetero`) runs stages.m2m.study.image_study (FID/KID
 before / m2m / flow_warp) and stages.force.study.force_study (source_only / genforce /
 genforce_comp / genforce_plus / oracle) over the study's (source, target) pairs, on the test
 indenters (`<study>/...`) and on the validation indenters (`<study>_val/...`).  `groups` names subsets of
@@ -38,7 +38,7 @@ def transfer_study(*, study: str, groups: Mapping[str, list], features: Mapping,
     """One study over the pairs of all its groups (a pair in two groups is scored once);
     members: the study's sensors, whose artifacts the inputs hold."""
     from stages.force.study import force_study
-    from stages.m2m.nodes import image_study
+    from stages.m2m.study import image_study
     pairs: list[list[str]] = []
     for group in groups.values():
         pairs += [[str(s), str(t)] for s, t in group if [str(s), str(t)] not in pairs]
@@ -79,5 +79,5 @@ def hetero_study(**kw) -> dict:
 
 def sim_m2m_study(*, skins: list, **kw) -> dict:
     """Node `sim_m2m` (paper Fig. 3): image metrics of the simulation patterns' translations."""
-    from stages.m2m.nodes import image_study
+    from stages.m2m.study import image_study
     return image_study(study="sim-m2m", **kw)

@@ -4,7 +4,7 @@ Wire formats:
   XELA WebSocket: JSON messages {"message": n, "time": t, "<sensor id>": {"data": [...]}} with
       ``data`` 48 values (x, y, z per taxel, taxels row-major) as ints, hex strings or one
       comma-separated hex string; raw counts around 32768; parsed by
-      stages.markers.uskin.parse_xela.  Gaps in ``message`` count as lost messages.
+      stages.capture.xela.parse_xela.  Gaps in ``message`` count as lost messages.
   SLCAN (Lawicel ASCII over a serial port, this project's frame mapping; XELA's own CAN
       layout is not public): the adapter is set up with "C\\r", "S6\\r" (500 kbit/s),
       "O\\r"; a scan is requested with the remote frame "r1000\\r" (id 0x100, DLC 0); the
@@ -29,7 +29,7 @@ TAXELS = 16
 
 class Xela(Device):
     """XELA uSkin server over a WebSocket (about 100 Hz JSON messages), parsed by
-    stages.markers.uskin.parse_xela; `sensor_id` picks the sensor."""
+    stages.capture.xela.parse_xela; `sensor_id` picks the sensor."""
     kind = "xela"
     defaults = {"url": "ws://127.0.0.1:5000", "sensor_id": "1", "timeout_s": 2.0}
 
@@ -60,7 +60,7 @@ class Xela(Device):
     def _receive_loop(self) -> None:
         from websockets.exceptions import ConnectionClosed
 
-        from stages.markers.uskin import parse_xela
+        from stages.capture.xela import parse_xela
         sensor = str(self.p["sensor_id"])
         try:
             for raw in self.ws:

@@ -24,6 +24,8 @@ from typing import Mapping
 
 import numpy as np
 
+from stages.common import check_option
+
 from stages.sim.indenters import grid_coords
 
 TARGET_N = {"fragile": 0.6, "medium": 0.8, "robust": 1.2}
@@ -62,11 +64,8 @@ def grasp_object(name: str, entry: Mapping) -> GraspObject:
     missing = [k for k in _FIELDS if k not in entry]
     if missing:
         raise KeyError(f"object {name!r}: missing {', '.join(missing)}")
-    if entry["shape"] not in SHAPES:
-        raise ValueError(f"object {name!r}: shape {entry['shape']!r} is not one of {SHAPES}")
-    if entry["fragility"] not in TARGET_N:
-        raise ValueError(f"object {name!r}: fragility {entry['fragility']!r} is not one of "
-                         f"{tuple(TARGET_N)}")
+    check_option(f"control.objects.{name}.shape", entry["shape"], SHAPES)
+    check_option(f"control.objects.{name}.fragility", entry["fragility"], tuple(TARGET_N))
     face = tuple(float(v) for v in entry["face_mm"])
     obj = GraspObject(name, float(entry["width_mm"]), float(entry["stiffness_N_mm"]),
                       str(entry["shape"]), float(entry["radius_mm"]), face,

@@ -63,7 +63,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from stages.common import attrs_of, marker_images
+from stages.common import attrs_of, check_option, marker_images
 
 DEFAULT_CONFIG = {
     "input_size": 64,                     # side S of the area-resized input images
@@ -95,10 +95,8 @@ def model_config(config: Mapping | None = None) -> dict:
         raise KeyError(f"unknown force-model config key(s) {unknown} (known: {sorted(DEFAULT_CONFIG)})")
     out = {**DEFAULT_CONFIG, **config}
     out = {k: (list(v) if isinstance(v, (list, tuple, np.ndarray)) else v) for k, v in out.items()}
-    if out["input_mode"] not in INPUT_MODES:
-        raise ValueError(f"input_mode {out['input_mode']!r} is not one of {INPUT_MODES}")
-    if out["mirror_read"] not in MIRROR_READS:
-        raise ValueError(f"mirror_read {out['mirror_read']!r} is not one of {MIRROR_READS}")
+    check_option("force.config.input_mode", out["input_mode"], INPUT_MODES)
+    check_option("force model mirror_read", out["mirror_read"], MIRROR_READS)
     down = 2 ** (1 + len(out["encoder_channels"]))
     if int(out["input_size"]) % down:
         raise ValueError(f"input_size {out['input_size']} must be a multiple of {down} "

@@ -14,8 +14,6 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-LABEL_KEYS = ("force", "depth", "normalised_depth", "position", "shift", "phase", "contact_id",
-              "indenter_id", "paired", "frame")
 
 
 def indenter_names(art) -> list[str]:

@@ -43,14 +43,13 @@ from typing import Mapping
 
 import numpy as np
 
+from stages.common import LABEL_KEYS, check_option
 from stages.markers.looks import LOOKS as SHADED
 from stages.markers.looks import LedRig, camera_image, shade
 from stages.markers.mitsuba_backend import mitsuba, resolve_backend, thread_count
 from stages.markers.pad_mesh import PadMesh
 from stages.markers.patterns import MarkerSet, marker_texture
 
-LABEL_KEYS = ("force", "depth", "normalised_depth", "position", "shift", "phase", "contact_id",
-              "indenter_id", "paired", "frame")
 NATIVE_SIZE = (480, 640)         # (H, W) px of the sensor the camera model is built on
 FILM_WIDTH_MM, FOCAL_MM = 36.0, 35.0
 TEXTURE_OVERSAMPLE = 2           # marker texels per film sample at the pad
@@ -310,8 +309,7 @@ def render_sequence(*, deform: Mapping, patterns: Mapping, skin: str, spec: Mapp
     from stages.figures import contact_sheet, png
 
     look = spec.get("look", "none")
-    if look not in LOOKS:
-        raise ValueError(f"skin {skin!r}: look {look!r} is not rendered (one of {', '.join(LOOKS)})")
+    check_option(f"sensors.{skin}.look (rendered)", look, LOOKS)
     markers = marker_set(patterns, spec["pattern"])
     seed = int(spec.get("seed", zlib.crc32(skin.encode())))
     renderer = Renderer(deform["grid_x"], deform["grid_y"], deform["surface_z"], deform["on_pad"],

@@ -33,6 +33,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stages.common import check_option
+
 POLARITIES = ("dark", "bright")
 METHODS = ("otsu", "grabcut")
 CHANNELS = ("value", "gray")
@@ -119,10 +121,8 @@ def coarse_markers(raw: np.ndarray, *, polarity: str = "dark", channel: str = "g
     """Coarse stage: background-difference OR extreme-value candidates, opening, connected
     components kept by area (parameters as in `segment`)."""
     import cv2
-    if polarity not in POLARITIES:
-        raise ValueError(f"segment: polarity must be one of {POLARITIES}, got {polarity!r}")
-    if channel not in CHANNELS:
-        raise ValueError(f"segment: channel must be one of {CHANNELS}, got {channel!r}")
+    check_option("segmentation polarity", polarity, POLARITIES)
+    check_option("segmentation channel", channel, CHANNELS)
     intensity, value = _channels(raw, channel)
     h, w = intensity.shape
     sigma = float(blur_sigma) if blur_sigma is not None else min(h, w) / 32.0
@@ -167,8 +167,7 @@ def segment(raw: np.ndarray, *, polarity: str = "dark", method: str = "otsu",
     grabcut_iterations.
     """
     import cv2
-    if method not in METHODS:
-        raise ValueError(f"segment: method must be one of {METHODS}, got {method!r}")
+    check_option("segmentation method", method, METHODS)
     coarse = coarse_markers(raw, polarity=polarity, channel=channel, smooth_sigma=smooth_sigma,
                             blur_sigma=blur_sigma, threshold=threshold,
                             value_threshold=value_threshold, open_size=open_size,

@@ -18,7 +18,8 @@ from typing import Mapping
 
 import numpy as np
 
-from stages.markers.uskin import LABEL_KEYS, USKIN_PAD_MM, signal_to_marker
+from stages.common import LABEL_KEYS, check_option
+from stages.markers.uskin import USKIN_PAD_MM, signal_to_marker
 
 LOOKS = ("none", "gelsight", "tactip", "taxel")
 POLARITY = {"gelsight": "dark", "tactip": "bright"}
@@ -82,8 +83,7 @@ def marker_sequence(*, source: Mapping, skin: str, spec: Mapping, segmentation: 
     from stages.markers.segment import centroid_error, iou, segment
 
     look = spec.get("look")
-    if look not in LOOKS:
-        raise ValueError(f"markers[{skin}]: look must be one of {LOOKS}, got {look!r}")
+    check_option(f"sensors.{skin}.look", look, LOOKS)
     if look == "taxel":
         _need(source, ("signals", "baseline"), skin, look)
         settings = _taxel_settings(source, spec, skin)

@@ -29,32 +29,24 @@ before it, and that signed pattern is all a z-only skin knows of the shear.
 Areas are in mm^2 of pad surface, so an image is the same at any output size; a dot is a
 circle in mm, drawn with the pad-to-pixel scale of each axis (as patterns.rasterize does), and
 base_area = BASE_AREA = pi (0.2 * 22.6 / 4)^2 = 4.01 mm^2 reproduces the `uskin` reference
-pattern exactly.  Defaults s_xy 4000 counts per grid unit, s_z 150 counts per mm^2 and
-max_area 16 mm^2 take the twin's strongest shear to the 0.8 clip and its deepest press to
-about 14.5 mm^2 (dots about 4.3 mm across on a 6.15 x 5.65 mm pitch).  On the default profile
-(a finer solver grid) the cells move further, and its skins set s_xy 20000 (params.yaml: the
-dots then move about as far as GelSight's markers, under the clip).  They press further too
-(up to 5866 counts), so s_z 150 clips a dot at max_area on half its frames.  s_z 500 clips
-none, but the transferred models then read less normal force (README, "hetero").
+pattern exactly.  The skin's s_xy and s_z (params.yaml) are set so that no training frame
+reaches the offset or the area clip: a clipped dot no longer tells its force.
 
-`parse_xela` reads the XELA server's WebSocket JSON, so captured hardware frames enter the
-same path.
+Captured frames (stages.capture.xela parses the XELA server's messages) enter the same path.
 """
 from __future__ import annotations
 
-import json
 from typing import Mapping
 
 import numpy as np
 
+from stages.common import LABEL_KEYS, check_option
 from stages.markers.patterns import USKIN_PAD_MM, MarkerSet, rasterize
 
 TAXELS = (4, 4)                      # rows (y), cols (x)
 MID_SCALE = 32768                    # XELA raw reading at rest
 GAINS = (10000.0, 10000.0, 8000.0)   # counts per mm of surface displacement (x, y, -z)
 VARIANTS = ("3axis", "z")
-LABEL_KEYS = ("force", "depth", "normalised_depth", "position", "shift", "phase", "contact_id",
-              "indenter_id", "paired", "frame")
 CHUNK = 256                          # frames per streamed chunk
 BASE_AREA = float(np.pi * (0.2 * min(USKIN_PAD_MM) / 4) ** 2)   # mm^2, the `uskin` pattern's dots
 
@@ -183,60 +175,6 @@ def _draw(centres, area, *, size, pad_mm, supersample: int = 4) -> np.ndarray:
     return out
 
 
-def _values(sensor, data) -> np.ndarray:
-    if isinstance(data, str):
-        data = [v for v in data.replace(" ", "").split(",") if v]
-    if not isinstance(data, (list, tuple)):
-        raise ValueError(f"parse_xela: sensor {sensor!r}: `data` must be a list or a comma-separated "
-                         f"string, got {type(data).__name__}")
-    if len(data) != 48:
-        raise ValueError(f"parse_xela: sensor {sensor!r}: expected 48 values (16 taxels x 3), "
-                         f"got {len(data)}")
-    out = []
-    for v in data:
-        if isinstance(v, bool) or not isinstance(v, (int, str)):
-            raise ValueError(f"parse_xela: sensor {sensor!r}: value {v!r} is not an integer or a "
-                             f"hex string")
-        try:
-            out.append(int(v, 16) if isinstance(v, str) else v)
-        except ValueError:
-            raise ValueError(f"parse_xela: sensor {sensor!r}: value {v!r} is not a hex string") from None
-    values = np.asarray(out, np.int64)
-    if values.min() < 0 or values.max() > 65535:
-        raise ValueError(f"parse_xela: sensor {sensor!r}: values outside 0..65535")
-    return values.reshape(16, 3).astype(np.int32)
-
-
-def parse_xela(message) -> dict:
-    """Raw readings of one XELA server WebSocket message: {sensor id: (16, 3) int32 x, y, z}.
-
-    The message (JSON text, bytes, or the decoded dict) holds one entry per sensor under its
-    id ("1", "2", ...), each a dict whose `data` lists 48 values, x, y, z per taxel row-major:
-    integers, or hex strings in older server versions (a list or one comma-separated string).
-    Other top-level keys (message, time, sensors) and other fields of a sensor entry, such as
-    `calibrated`, are ignored; a message with no sensor entry (the server's welcome) gives {}.
-    """
-    if isinstance(message, (bytes, bytearray)):
-        try:
-            message = message.decode("utf-8")
-        except UnicodeDecodeError:
-            raise ValueError("parse_xela: message is not UTF-8 text") from None
-    if isinstance(message, str):
-        try:
-            message = json.loads(message)
-        except json.JSONDecodeError as err:
-            raise ValueError(f"parse_xela: message is not JSON ({err.msg} at char {err.pos})") from None
-    if not isinstance(message, Mapping):
-        raise ValueError(f"parse_xela: message must be a JSON object, got {type(message).__name__}")
-    sensors = {}
-    for key, entry in message.items():
-        if isinstance(entry, Mapping) and "data" in entry:
-            sensors[str(key)] = _values(key, entry["data"])
-        elif str(key).isdigit():
-            raise ValueError(f"parse_xela: sensor {key!r} has no `data` list")
-    return sensors
-
-
 def _spec_float(spec: Mapping, key: str, default: float) -> float:
     return float(spec.get(key, default))
 
@@ -254,8 +192,7 @@ def taxel_sequence(*, deform: Mapping, skin: str, spec: Mapping):
     """
     from tqdm import tqdm
     variant = spec.get("variant", "3axis")
-    if variant not in VARIANTS:
-        raise ValueError(f"skin {skin!r}: variant must be one of {VARIANTS}, got {variant!r}")
+    check_option(f"sensors.{skin}.variant", variant, VARIANTS)
     attrs = getattr(deform, "attrs", {}) or {}
     pad = tuple(float(v) for v in spec.get("pad_mm", attrs.get("pad_mm", USKIN_PAD_MM)))
     gains = [float(g) for g in spec.get("gains", GAINS)]

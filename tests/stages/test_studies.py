@@ -21,7 +21,7 @@ def test_transfer_study_keeps_its_parts_timings_out_of_the_content(monkeypatch):
     """image_study reports its seconds; in the study they belong to the provenance ("timing"),
     or every re-run would write a different artifact and never cut off downstream."""
     import stages.force.study as force_study_module
-    import stages.m2m.nodes as m2m_nodes
+    import stages.m2m.study as m2m_nodes
     from stages.studies import transfer_study
     seen = {}
 

@@ -333,7 +333,7 @@ def test_catalogue_entries_are_checked():
 
 # -- the skin camera: the twin's images through the skin's own image chain -----------------------
 
-GELSIGHT_SKIN = {"sensor": "gelsight-r10", "pattern": "gelsight-A-II", "look": "gelsight", "noise": 3.0,
+GELSIGHT_SKIN = {"body": "gelsight-r10", "pattern": "gelsight-A-II", "look": "gelsight", "noise": 3.0,
                  "source": "render", "light": [[0.95, 0.25, 0.2], [0.25, 0.9, 0.3], [0.2, 0.35, 0.95]]}
 SEGMENTATION = {"method": "otsu", "min_area": 3, "box_margin": 3, "gelsight": {"polarity": "dark"}}
 
@@ -439,13 +439,13 @@ def test_control_node_puts_the_target_skin_on_the_fingers(monkeypatch):
     patterns = {f"markers/gelsight-A-II/{k}": np.asarray(v) for k, v in
                 (("centers", markers.centers), ("axes", markers.axes), ("angles", markers.angles),
                  ("pad_size_mm", markers.pad_size_mm))}
-    skins = {"gelsight-A-II": GELSIGHT_SKIN,
-             "tactip": {"sensor": "tactip", "pattern": "tactip", "look": "tactip", "source": "render"},
-             "uskin-3axis": {"sensor": "uskin", "pattern": "uskin", "look": "taxel", "source": "taxels"},
-             "dome": {**GELSIGHT_SKIN, "sensor": "dome"}}
-    sensors = {"gelsight-r10": SENSOR, "dome": {**SENSOR, "curvature_radius_mm": 40.0}}
+    gelsight = {**SENSOR, **GELSIGHT_SKIN}                   # a catalogue entry: mechanics and look
+    sensors = {"gelsight-A-II": gelsight,
+               "tactip": {**SENSOR, "pattern": "tactip", "look": "tactip", "source": "render"},
+               "uskin-3axis": {**SENSOR, "pattern": "uskin", "look": "taxel", "source": "taxels"},
+               "dome": {**gelsight, "curvature_radius_mm": 40.0}}
     kw = dict(objects=DEFAULT_OBJECTS, grasp=["grape"], slip=["glue_stick"], size=SIZE,
-              duration_s=1.5, pull={**PULL, "monitor_s": 1.0}, seed=0, twin=TWIN, skins=skins,
+              duration_s=1.5, pull={**PULL, "monitor_s": 1.0}, seed=0, twin=TWIN,
               sensors=sensors, materials={"r10": MATERIAL}, patterns=patterns,
               segmentation=SEGMENTATION)
     out = nodes.control_node(model={"gain": 3.0}, supervised={"gain": 1.0},
@@ -463,10 +463,10 @@ def test_control_node_puts_the_target_skin_on_the_fingers(monkeypatch):
     assert m["control/supervised/grasp/grape/force_error_N"] != pytest.approx(
         m["control/grasp/grape/force_error_N"], abs=1e-3)
     for target, match in (("tactip", "look 'tactip'"), ("uskin-3axis", "look 'taxel'"),
-                          ("dome", "'dome', a dome"), ("unicorn", "'unicorn' is not a skin")):
+                          ("dome", "'dome' is a dome"), ("unicorn", "'unicorn' is not a sensor")):
         with pytest.raises(InputError, match=match):
             nodes.control_node(model={"gain": 3.0}, model_pair=["gelsight-A-I", target], **kw)
-    with pytest.raises(InputError, match="sensor 'gelsight-r10' has material 'r10', not in materials"):
+    with pytest.raises(InputError, match="sensor 'gelsight-A-II' has material 'r10', not in materials"):
         nodes.control_node(model={"gain": 3.0}, model_pair=["gelsight-A-I", "gelsight-A-II"],
                            **{**kw, "materials": {}})
     for bad in ("11", 1.5, True, -3):

@@ -14,7 +14,8 @@ from force_synthetic import contact_artifact
 from stages.force import plus
 from stages.force.fit import fit_own, fit_transfer
 from stages.force.model import load_model, predict_contacts
-from stages.m2m import nodes as m2m
+from stages.m2m import fit as m2m_fit
+from stages.m2m import translate as m2m_translate
 from tests.helpers import drain
 
 NAMES = ["sphere", "prism", "cone", "torus"]        # two training indenters, validation, test
@@ -42,11 +43,11 @@ def _poisoned(target, how):
 def _chain(source, target, tiny_config):
     """Every node of one transfer, on these source and target marker artifacts."""
     markers = {"S": source, "T": target}
-    base = m2m.pretrain(markers=markers, skins=["S", "T"], train_indenters=TRAIN, size=(32, 32), steps=3,
+    base = m2m_fit.pretrain(markers=markers, skins=["S", "T"], train_indenters=TRAIN, size=(32, 32), steps=3,
                         batch_size=4, lr=1e-3, seed=0, width=4, timesteps=10)
-    tuned = m2m.finetune(base=base, markers=markers, skins=["S", "T"], train_indenters=TRAIN,
+    tuned = m2m_fit.finetune(base=base, markers=markers, skins=["S", "T"], train_indenters=TRAIN,
                          pairs_per_skin=6, steps=3, batch_size=4, lr=1e-3, seed=0, change_share=0.1)
-    chunks, out = drain(m2m.translate_sequence(model=tuned, source_markers=source, target_markers=target,
+    chunks, out = drain(m2m_translate.translate_sequence(model=tuned, source_markers=source, target_markers=target,
                                                eval_indenters=["torus"], val_indenters=["cone"], n_eval=4))
     translated = {**out, **{k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]},
                   "indenters": source["indenters"]}

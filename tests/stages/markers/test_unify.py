@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 import stages.markers.unify as unify
+from stages.common import InputError
 from marker_looks import gelsight_frame, tactip_frame
 from stages.markers.segment import iou, segment
 from stages.markers.uskin import MID_SCALE, signal_to_marker
@@ -125,7 +126,7 @@ def test_taxel_look_draws_signals(variant):
 
 def test_errors_name_the_culprit():
     source = Art({"truth": np.zeros((2, 8, 8), np.uint8), "truth_reference": np.zeros((8, 8), np.uint8)})
-    with pytest.raises(ValueError, match=r"markers\[s\]: look must be one of .* got 'infrared'"):
+    with pytest.raises(InputError, match=r"sensors.s.look must be one of none, gelsight, tactip, taxel, got 'infrared'"):
         run(marker_sequence(source=source, skin="s", spec={"look": "infrared"}, segmentation={}))
     with pytest.raises(KeyError, match=r"markers\[g\]: look 'gelsight' needs raw, raw_reference"):
         run(marker_sequence(source=source, skin="g", spec={"look": "gelsight"}, segmentation={}))

@@ -1,12 +1,11 @@
 """uSkin: taxel signals from displacement, signal-to-marker geometry, XELA message parsing."""
-import json
 
 import cv2
 import numpy as np
 import pytest
 
 from stages.markers.patterns import USKIN_PAD_MM, rasterize, uskin_pattern
-from stages.markers.uskin import (BASE_AREA, GAINS, MID_SCALE, parse_xela, signal_to_marker, taxel_centres,
+from stages.markers.uskin import (BASE_AREA, GAINS, MID_SCALE, signal_to_marker, taxel_centres,
                                   taxel_sequence, taxel_signals, taxel_weights)
 from tests.helpers import drain
 
@@ -162,42 +161,6 @@ def test_reference_is_the_uskin_pattern_and_batches_work():
     assert batch.shape == (2, 48, 64)
     with pytest.raises(ValueError, match=r"raw must be \(N,16,3\)"):
         signal_to_marker(np.zeros((3, 16, 2)), BASE)
-
-
-def xela_message(data, **extra):
-    return json.dumps({"message": 17, "time": 1.7e9, "sensors": 1,
-                       "1": {"data": data, "sensor": "1", "taxels": 16, "model": "uSPa44",
-                             "calibrated": None, **extra}})
-
-
-def test_parse_xela_ints_and_hex():
-    values = (MID_SCALE + np.arange(48)).tolist()
-    expected = np.asarray(values).reshape(16, 3)
-    out = parse_xela(xela_message(values, calibrated=[0.1] * 48))
-    assert list(out) == ["1"] and out["1"].shape == (16, 3)
-    assert np.array_equal(out["1"], expected)
-    hexes = [format(v, "04X") for v in values]
-    assert np.array_equal(parse_xela(xela_message(hexes))["1"], expected)
-    assert np.array_equal(parse_xela(xela_message(",".join(hexes)).encode())["1"], expected)
-    msg = json.loads(xela_message(values))
-    msg["2"] = {"data": values[::-1]}
-    assert np.array_equal(parse_xela(msg)["2"], expected.ravel()[::-1].reshape(16, 3))
-    assert parse_xela('{"message": "Welcome"}') == {}
-
-
-@pytest.mark.parametrize("message, error", [
-    ("{not json", r"parse_xela: message is not JSON \(Expecting property name"),
-    ("[1, 2]", "parse_xela: message must be a JSON object, got list"),
-    (xela_message([1] * 45), r"parse_xela: sensor '1': expected 48 values \(16 taxels x 3\), got 45"),
-    (xela_message(["80G0"] * 48), "parse_xela: sensor '1': value '80G0' is not a hex string"),
-    (xela_message([1.5] * 48), "parse_xela: sensor '1': value 1.5 is not an integer or a hex string"),
-    (xela_message([70000] * 48), r"parse_xela: sensor '1': values outside 0..65535"),
-    ('{"3": {"sensor": "3"}}', "parse_xela: sensor '3' has no `data` list"),
-])
-def test_parse_xela_rejects_malformed(message, error):
-    with pytest.raises(ValueError, match=error) as info:
-        parse_xela(message)
-    assert "\n" not in str(info.value)
 
 
 def test_taxel_sequence_streams_signals_and_labels(monkeypatch):

@@ -4,7 +4,7 @@ import pytest
 from m2m_synthetic import SKINS
 
 from stages.imagemetrics import fid, kid
-from stages.m2m import nodes
+from stages.m2m import fit, study, translate
 from stages.m2m.data import eval_frame_indices
 from tests.helpers import drain as run_node
 
@@ -16,7 +16,7 @@ PNG = bytes([0x89, 0x50, 0x4E, 0x47])
 def trained(skins):
     """A width-8 generator trained from scratch for 1200 steps on the 3 tiny skins (~40 s; at
     400 steps it drew the target's markers but kept little of their motion)."""
-    return nodes.pretrain(markers=skins, skins=list(SKINS), train_indenters=["sphere"], size=(64, 64),
+    return fit.pretrain(markers=skins, skins=list(SKINS), train_indenters=["sphere"], size=(64, 64),
                           steps=1200, batch_size=16, lr=3e-3, seed=0, width=8, timesteps=100)
 
 
@@ -40,9 +40,9 @@ def test_trained_model_beats_before_on_held_out_frames(skins, trained):
     against Diamond3's own images than Array3's images do, and they overlap the true
     deformed Diamond3 images better than its undeformed reference does."""
     src, tgt = skins["Array3"], skins["Diamond3"]
-    real = nodes.image_features(markers=tgt, eval_indenters=["wave"], n_eval=N_EVAL)
-    before = nodes.image_features(markers=src, eval_indenters=["wave"], n_eval=N_EVAL)
-    chunks, out = run_node(nodes.translate_sequence(model=trained, source_markers=src, target_markers=tgt,
+    real = translate.image_features(markers=tgt, eval_indenters=["wave"], n_eval=N_EVAL)
+    before = translate.image_features(markers=src, eval_indenters=["wave"], n_eval=N_EVAL)
+    chunks, out = run_node(translate.translate_sequence(model=trained, source_markers=src, target_markers=tgt,
                                                     eval_indenters=["wave"], n_eval=N_EVAL))
     np.testing.assert_array_equal(out["eval_frames"], real["eval_frames"])
     fid_before, fid_m2m = fid(before["features"], real["features"]), fid(out["features"], real["features"])
@@ -62,14 +62,14 @@ def test_trained_model_keeps_the_deformation(skins, trained, monkeypatch):
     monkeypatch.setattr("stages.imagemetrics.inception_features",   # FID is not this test's
                         lambda images, **kw: np.mean(images, axis=2) / 255.0)
     pairs = [["Array3", "Diamond3"], ["Circle3", "Array3"], ["Diamond3", "Circle3"]]
-    feats = {n: nodes.image_features(markers=skins[n], eval_indenters=["wave"], n_eval=24) for n in SKINS}
-    translated = {nodes.pair_label(s, t): dict(zip(("chunks", "out"), run_node(nodes.translate_sequence(
+    feats = {n: translate.image_features(markers=skins[n], eval_indenters=["wave"], n_eval=24) for n in SKINS}
+    translated = {study.pair_label(s, t): dict(zip(("chunks", "out"), run_node(translate.translate_sequence(
         model=trained, source_markers=skins[s], target_markers=skins[t], eval_indenters=["wave"], n_eval=24))))
         for s, t in pairs}
     translated = {k: {"images": np.concatenate([c["images"] for c in v["chunks"]]),
                       "frame": np.concatenate([c["frame"] for c in v["chunks"]]), **v["out"]}
                   for k, v in translated.items()}
-    out = nodes.image_study(study="s", pairs=pairs, features=feats, translated=translated, kid_subset=10,
+    out = study.image_study(study="s", pairs=pairs, features=feats, translated=translated, kid_subset=10,
                             markers=skins)
     m = out["metrics"]
     for s, t in pairs:
@@ -85,40 +85,40 @@ def test_motion_errors_only_where_both_skins_deformed_alike(skins, monkeypatch):
     target's own frames are not the truth for the source's deformation."""
     monkeypatch.setattr("stages.imagemetrics.inception_features", lambda images, **kw: np.mean(images, axis=2))
     pairs = [["Array3", "Diamond3"], ["Diamond3", "Circle3"]]
-    feats = {n: nodes.image_features(markers=skins[n], eval_indenters=["wave"], n_eval=8) for n in SKINS}
+    feats = {n: translate.image_features(markers=skins[n], eval_indenters=["wave"], n_eval=8) for n in SKINS}
     warped = {}
     for s, t in pairs:
-        chunks, out = run_node(nodes.flow_warp_sequence(source_markers=skins[s], target_markers=skins[t],
+        chunks, out = run_node(translate.flow_warp_sequence(source_markers=skins[s], target_markers=skins[t],
                                                         eval_indenters=["wave"], n_eval=8))
-        warped[nodes.pair_label(s, t)] = {**out, **{k: np.concatenate([c[k] for c in chunks])
+        warped[study.pair_label(s, t)] = {**out, **{k: np.concatenate([c[k] for c in chunks])
                                                     for k in ("images", "frame")}}
     run = dict(study="s", pairs=pairs, features=feats, translated=warped, kid_subset=4)
-    m = nodes.image_study(**run, markers=skins)["metrics"]
+    m = study.image_study(**run, markers=skins)["metrics"]
     for s, t in pairs:
         assert m[f"s/{s}_{t}/m2m/motion_err_px"] < 0.5 * m[f"s/{s}_{t}/before/motion_err_px"]
     other = dict(skins, Circle3={**skins["Circle3"], "force": skins["Circle3"]["force"] + 1.0})
-    out = nodes.image_study(**run, markers=other)
+    out = study.image_study(**run, markers=other)
     assert "s/Diamond3_Circle3/m2m/motion_err_px" not in out["metrics"]
     assert out["metrics"]["s/mean/m2m/motion_err_px"] == m["s/Array3_Diamond3/m2m/motion_err_px"]
-    assert set(nodes.image_study(**run)["figures"]) == {"fid", "kid", "tsne"}      # no markers: no motion
+    assert set(study.image_study(**run)["figures"]) == {"fid", "kid", "tsne"}      # no markers: no motion
     assert "motion" in out["figures"] and np.isnan(out["motion_err"]["m2m"][2, 0])
     # a target whose markers do not move (a z-only taxel skin's dots): no score, not NaN
     still = dict(skins, Circle3={**skins["Circle3"], "images": np.broadcast_to(
         skins["Circle3"]["reference"], skins["Circle3"]["images"].shape).copy()})
-    out = nodes.image_study(**run, markers=still)
+    out = study.image_study(**run, markers=still)
     assert "s/Diamond3_Circle3/m2m/motion_err_px" not in out["metrics"]
     assert out["metrics"]["s/Array3_Diamond3/m2m/motion_err_px"] == m["s/Array3_Diamond3/m2m/motion_err_px"]
 
 
 def test_translation_streams_labels_and_matches_flow_warp_layout(skins, trained, monkeypatch):
-    monkeypatch.setattr(nodes, "CHUNK", 20)
+    monkeypatch.setattr(translate, "CHUNK", 20)
     monkeypatch.setattr("stages.imagemetrics.inception_features",
                         lambda images, **kw: np.repeat(np.mean(images, axis=(1, 2))[:, None], 4, axis=1))
     src, tgt = skins["Circle3"], skins["Array3"]
     split = dict(eval_indenters=["wave"], val_indenters=["sphere"], n_eval=4)
-    for gen in (nodes.translate_sequence(model=trained, source_markers=src, target_markers=tgt, sampler_steps=2,
+    for gen in (translate.translate_sequence(model=trained, source_markers=src, target_markers=tgt, sampler_steps=2,
                                          **split),
-                nodes.flow_warp_sequence(source_markers=src, target_markers=tgt, **split)):
+                translate.flow_warp_sequence(source_markers=src, target_markers=tgt, **split)):
         chunks, out = run_node(gen)
         assert [len(c["images"]) for c in chunks] == [20, 20, 8]
         for key in ("force", "depth", "phase", "contact_id", "indenter_id", "paired", "frame"):
@@ -140,7 +140,7 @@ def test_translation_streams_labels_and_matches_flow_warp_layout(skins, trained,
 
 def test_finetune_starts_from_the_base_and_uses_few_pairs(skins, trained):
     two = ["Array3", "Circle3"]
-    tuned = nodes.finetune(base=trained, markers=skins, skins=two, train_indenters=["sphere"],
+    tuned = fit.finetune(base=trained, markers=skins, skins=two, train_indenters=["sphere"],
                            pairs_per_skin=3, steps=5, batch_size=4, lr=1e-4, seed=1)
     assert tuned["attrs"]["pairs"] == 3 and tuned["attrs"]["base_skins"] == list(SKINS)
     assert tuned["attrs"]["config"] == trained["attrs"]["config"]
@@ -153,7 +153,7 @@ def test_finetune_starts_from_the_base_and_uses_few_pairs(skins, trained):
 def test_finetune_refuses_two_skins_drawn_alike(skins, trained):
     twin = dict(skins, Copy3=skins["Circle3"])
     with pytest.raises(ValueError, match="skins 'Circle3' and 'Copy3' have identical reference images"):
-        nodes.finetune(base=trained, markers=twin, skins=["Array3", "Circle3", "Copy3"],
+        fit.finetune(base=trained, markers=twin, skins=["Array3", "Circle3", "Copy3"],
                        train_indenters=["sphere"], pairs_per_skin=3, steps=5, batch_size=4, lr=1e-4, seed=1)
 
 
@@ -163,13 +163,13 @@ def test_image_study_metrics_matrices_and_figures():
     feats = {n: {"features": rng.normal(3 * i, 1.0, (10, 16)), "features_val": rng.normal(i, 1.0, (10, 16))}
              for i, n in enumerate(names)}
     pairs = [["A", "B"], ["B", "A"], ["C", "A"]]
-    near = {nodes.pair_label(s, t): {"features": feats[t]["features"] + rng.normal(0, 0.1, (10, 16)),
+    near = {study.pair_label(s, t): {"features": feats[t]["features"] + rng.normal(0, 0.1, (10, 16)),
                                      "features_val": feats[s]["features_val"]}
             for s, t in pairs}
-    far = {nodes.pair_label(s, t): {"features": feats[t]["features"] + rng.normal(1.0, 0.5, (10, 16)),
+    far = {study.pair_label(s, t): {"features": feats[t]["features"] + rng.normal(1.0, 0.5, (10, 16)),
                                     "features_val": feats[t]["features_val"]}
            for s, t in pairs}
-    out = nodes.image_study(study="sim-m2m", pairs=pairs, features=feats, translated=near, warped=far,
+    out = study.image_study(study="sim-m2m", pairs=pairs, features=feats, translated=near, warped=far,
                             kid_subset=5)
     m = out["metrics"]
     assert m["sim-m2m/A_B/before/fid"] == pytest.approx(fid(feats["A"]["features"], feats["B"]["features"]))
@@ -188,5 +188,5 @@ def test_image_study_metrics_matrices_and_figures():
     assert f[1, 0] == pytest.approx(m["sim-m2m/B_A/m2m/fid"])
     assert out["skins"] == names and set(out["figures"]) == {"fid", "kid", "tsne"}
     with pytest.raises(KeyError, match="source=C,target=B"):
-        nodes.image_study(study="x", pairs=[["C", "B"]], features=feats, translated=near, warped={},
+        study.image_study(study="x", pairs=[["C", "B"]], features=feats, translated=near, warped={},
                           kid_subset=5)

@@ -1,0 +1,130 @@
+"""M2M's training nodes: m2m_sim (pretrain: the generator trained from scratch on the
+simulation patterns) and m2m (finetune: the same weights fine-tuned on a few location-paired
+frames of the twins or of the authors' sensors)."""
+from __future__ import annotations
+
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from stages.common import attrs_of, torch_threads
+from stages.figures import contact_sheet, figure_png, png
+from stages.m2m.data import paired_table, read_rows
+
+N_EXAMPLES = 4          # rows of the examples figure
+
+
+def _paired_arrays(markers: Mapping, skins: Sequence[str], rows: np.ndarray, size) -> tuple[np.ndarray, np.ndarray]:
+    """Images (S,K,h,w) at the rows of the paired table and references (S,h,w), at `size`."""
+    from stages.m2m.model import _resize
+    images = np.stack([_resize(read_rows(markers[s]["images"], r), size) for s, r in zip(skins, rows)])
+    refs = np.stack([_resize(np.asarray(markers[s]["reference"], np.uint8)[None], size)[0] for s in skins])
+    return images, refs
+
+
+def _loss_figure(loss: np.ndarray, title: str):
+    from matplotlib.figure import Figure
+    fig = Figure(figsize=(6, 3.5))
+    ax = fig.subplots()
+    ax.plot(loss, lw=0.5, alpha=0.4, color="C0")
+    k = max(1, len(loss) // 50)
+    if len(loss) >= k:
+        smooth = np.convolve(loss, np.ones(k) / k, mode="valid")
+        ax.plot(np.arange(len(smooth)) + k - 1, smooth, color="C0", label=f"mean of {k}")
+    ax.set_xlabel("step")
+    ax.set_ylabel("BCE + Dice loss")
+    ax.set_yscale("log")
+    ax.set_title(title)
+    ax.legend()
+    fig.tight_layout()
+    return fig
+
+
+def _samples_sheet(translator, images: np.ndarray, refs: np.ndarray, seed: int) -> np.ndarray:
+    """Rows of source | translated | target for random training pairs (one per row)."""
+    rng = np.random.default_rng(seed)
+    s, k = images.shape[:2]
+    tiles = []
+    for _ in range(N_EXAMPLES):
+        a, f = int(rng.integers(s)), int(rng.integers(k))
+        b = int((a + rng.integers(1, s)) % s) if s > 1 else a
+        out = translator.translate(images[a, f][None], refs[a], refs[b])[0]
+        tiles += [images[a, f], out, images[b, f]]
+    return contact_sheet(tiles, cols=3)
+
+
+def _distinct_references(skins: Sequence[str], refs: np.ndarray, title: str) -> None:
+    """The generator knows a target only by its reference image: two skins drawn alike would
+    teach it two answers to one question."""
+    seen = {}
+    for skin, ref in zip(skins, refs):
+        key = ref.tobytes()
+        if key in seen:
+            raise ValueError(f"{title}: skins {seen[key]!r} and {skin!r} have identical reference "
+                             f"images, so the translator cannot tell them apart as targets; draw "
+                             f"one differently (its pattern, or base_area for a taxel skin)")
+        seen[key] = skin
+
+
+def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_size, lr, seed,
+           change_share, title, checkpoint=None):
+    from stages.m2m.model import Translator, state_arrays
+    from stages.m2m.train import PairBatches, fit
+    frames, rows = paired_table(markers, skins, train_indenters, per_skin)
+    images, refs = _paired_arrays(markers, skins, rows, config["size"])
+    _distinct_references(skins, refs, title)
+    with torch_threads():
+        batches = PairBatches(images, refs, seed)
+        hist = fit(net, config, batches, steps=int(steps), batch_size=int(batch_size), lr=float(lr),
+                   seed=int(seed), change_share=float(change_share), progress=title, checkpoint=checkpoint)
+        weights = state_arrays(net)
+        samples = _samples_sheet(Translator(config, weights), images, refs, seed)
+    tail = hist["loss"][-max(1, len(hist["loss"]) // 20):]
+    return {
+        "weights": weights,
+        "loss": hist["loss"],
+        "figures": {"loss": figure_png(_loss_figure(hist["loss"], title)),
+                    "samples": png(samples)},
+        "attrs": {"config": config, "skins": list(skins), "train_indenters": list(train_indenters),
+                  "pairs": int(len(frames)), "steps": int(steps), "batch_size": int(batch_size),
+                  "lr": float(lr), "seed": int(seed), "change_share": float(change_share),
+                  "final_loss": float(np.mean(tail)) if len(tail) else float("nan"),
+                  "parameters": int(sum(v.size for v in weights.values()))},
+        "timing": {"seconds": round(hist["seconds"], 2), "steps_per_s": round(hist["steps_per_s"], 3),
+                   "resumed_at_step": int(hist["resumed_at"])},
+    }
+
+
+def pretrain(*, markers: Mapping, skins: list[str], train_indenters: list[str], size, steps: int,
+             batch_size: int, lr: float, seed: int, width: int, timesteps: int,
+             change_share: float = 0.0, source_gate: bool = True, checkpoint: str | None = None) -> dict:
+    """Node m2m_sim: the generator trained from scratch on every ordered pair of `skins`
+    (location-paired frames of the training indenters).  Returns weights (name -> array),
+    the per-step loss, figures loss/samples and attrs (config to rebuild the model, ...).
+    checkpoint: where the training saves its state as it goes (the worker gives a path per
+    cache key), so an interrupted run resumes (train.fit).
+    source_gate: the logits' base adds the source's edit where the references coincide
+    (model.M2MNet.base); the fine-tune keeps the pretrained model's config."""
+    import torch
+    from stages.m2m.model import build, default_config
+    config = default_config(size=size, width=width, timesteps=timesteps, source_gate=source_gate)
+    torch.manual_seed(int(seed))
+    net = build(config)
+    return _train(net, config, markers, skins, train_indenters, 0, steps, batch_size, lr, seed,
+                  change_share, "m2m pretrain", checkpoint=checkpoint)
+
+
+def finetune(*, base, markers: Mapping, skins: list[str], train_indenters: list[str],
+             pairs_per_skin: int, steps: int, batch_size: int, lr: float, seed: int,
+             change_share: float = 0.0, checkpoint: str | None = None) -> dict:
+    """Node m2m: `base` (a pretrained model) fine-tuned on `pairs_per_skin` location-paired
+    frames shared by `skins`, evenly spread over the training indenters' frames.
+    checkpoint: as pretrain's."""
+    from stages.m2m.model import build, weights_of
+    config = attrs_of(base)["config"]
+    net = build(config, weights_of(base))
+    out = _train(net, config, markers, skins, train_indenters, int(pairs_per_skin), steps, batch_size,
+                 lr, seed, change_share, "m2m finetune", checkpoint)
+    out["attrs"]["base_skins"] = list(attrs_of(base).get("skins", []))
+    out["attrs"]["pairs_per_skin"] = int(pairs_per_skin)
+    return out
