@@ -24,7 +24,8 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-BENCHMARKS = ("engine", "contact", "render", "m2m", "force", "capture", "ingest", "control", "gpu")
+BENCHMARKS = ("engine", "contact", "render", "m2m", "force", "capture", "ingest", "control", "gpu",
+              "pipeline_time")
 ONLY_WITH_CUDA = ("gpu",)     # left out of the default list where torch sees no GPU
 TARGET = re.compile(r"^\s*(>=|<=)\s*([-+0-9.eE]+)\s*$")
 
