@@ -13,20 +13,11 @@ The paper's architecture (RAFT feature encoder -> ConvGRU -> residual blocks -> 
 
 RAFT keeps its GRU at 1/8 resolution with 128 channels; on a 2-core CPU the GRU then costs
 more than everything else, so the CPU profile downsamples once more (1/16) and narrows the
-channels: a 64x64 input trains at about 1000 frames per second on one core, and one frame
-streams in about 1.7 ms, 6 ms read with its three mirror images (below; benchmarks/force.py).
+channels (benchmarks/force.py measures its speed).
 
 Input representation (``input_mode``): "difference" feeds one channel, (image - reference)/255,
 so the static marker layout cancels and only marker motion remains; "stack" feeds the image and
-the reference as two channels.  "difference" is the default because it transfers across
-sensors; "stack" fits one sensor a little better but keys on its layout.  Measured on the
-simulation twins (gelsight-A-I deformation, the pattern's markers moved by the displacement
-field, 128x128; 200 steps on the contacts of 9 seen indenters, scored on 3 held-out ones), MAE
-Fx / Fy / Fz in N:
-
-    input        same pattern (A-I)    other pattern, source-only (D-I)
-    difference   0.25 / 0.35 / 1.14    0.91 / 0.72 / 3.41
-    stack        0.23 / 0.22 / 0.74    3.69 / 1.17 / 14.1
+the reference as two channels, which keys the model on one sensor's marker layout.
 
 Mirror read (``mirror_read``, "none" by default; genforce_plus's `mirror_shear`): shear is odd
 under a mirror image of the contact (the columns reversed negate Fx, the rows reversed Fy) and
