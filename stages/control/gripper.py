@@ -215,12 +215,7 @@ class SkinCamera:
     vertex grid the training frames were rendered on).  Camera noise of shot i is seeded by
     (seed, i), as the render node seeds frame i.  reference_seed: the seed of the no-contact
     reference shot (default seed).  The render node's seed gives the skin's own reference, the
-    one its models were trained with, as a sensor keeps the reference captured at set-up: a
-    GelSight skin's models read another noise realisation of it at another gain (A-II, unseen
-    indenters at 0.5-2 N, noise seeds 11-19: its own model 0.90-2.13 of the true force against
-    1.05 with its reference, the A-I transfer 1.01-1.68 against 1.27;
-    scripts/reference_noise.py), though the control study's grasps do as well with those of
-    seeds 11-13 (README, Control).
+    one its models were trained with, as a sensor keeps the reference captured at set-up.
     """
 
     def __init__(self, grid_x, grid_y, markers: MarkerSet, *, spec: Mapping, size=(128, 128),
