@@ -320,18 +320,32 @@ def content_digest(f: h5py.File) -> str:
 
 
 def verify_file(path: Path) -> tuple[bool, str]:
-    """(ok, message): re-digest the content and compare with the stored digest."""
+    """(ok, message): the file carries the key in its name, and its content re-digests to
+    the digest it carries."""
+    ok, message, _ = verify_content(path)
+    return ok, message
+
+
+def verify_content(path: Path) -> tuple[bool, str, str]:
+    """verify_file's (ok, message) and the content digest the file carries ("" if none).
+
+    An artifact's own key is checked first: a file copied or moved over another key's path
+    carries a digest that matches its content, so only its key tells it does not belong."""
+    path = Path(path)
     try:
         with h5py.File(path, "r") as f:
-            stored = _provenance(f).get("digest", "")
+            prov = _provenance(f)
+            stored = prov.get("digest", "")
             if not stored:
-                return False, "no content digest (incomplete artifact)"
+                return False, "no content digest (incomplete artifact)", ""
+            if prov.get("key") != path.stem:
+                return False, f"holds artifact {prov.get('key')}, not {path.stem} (copied or moved over it)", stored
             actual = content_digest(f)
     except Exception as exc:  # h5py raises OSError/KeyError/RuntimeError on damaged files
-        return False, f"unreadable: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
+        return False, f"unreadable: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}", ""
     if actual != stored:
-        return False, f"content digest {actual[:12]} != recorded {stored[:12]}"
-    return True, "ok"
+        return False, f"content digest {actual[:12]} != recorded {stored[:12]}", stored
+    return True, "ok", stored
 
 
 def read_record(path: Path) -> dict:

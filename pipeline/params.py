@@ -31,8 +31,46 @@ Loader.add_implicit_resolver(
     list("-+0123456789."))
 
 
-def safe_load(text: str):
-    return yaml.load(text, Loader=Loader)  # noqa: S506 - Loader is a SafeLoader
+MAX_NODES = 200_000   # values a params file may expand to: aliases beyond that are a bomb
+
+
+def safe_load(text: str, what: str = "YAML"):
+    """The YAML's data, refused when its aliases expand to more than MAX_NODES values (a
+    "billion laughs" file would otherwise take forever and all memory in what reads it)."""
+    loader = Loader(text)
+    try:
+        node = loader.get_single_node()
+        if node is not None:
+            _bounded(node, what)
+            return loader.construct_document(node)
+        return None
+    finally:
+        loader.dispose()
+
+
+def _bounded(root, what: str) -> None:
+    """Count the values the node graph expands to, each shared node's size computed once,
+    so that counting stays linear in the file however far its aliases expand."""
+    sizes: dict[int, int] = {}
+    entered: set[int] = set()
+    stack = [root]
+    while stack:
+        node = stack[-1]
+        if id(node) in sizes:
+            stack.pop()
+            continue
+        children = ([c for kv in node.value for c in kv] if isinstance(node, yaml.MappingNode)
+                    else list(node.value) if isinstance(node, yaml.SequenceNode) else [])
+        if id(node) not in entered:
+            entered.add(id(node))
+            # a node inside itself (a recursive anchor) is left to the caller's own error
+            stack += [c for c in children if id(c) not in sizes and id(c) not in entered]
+            continue
+        stack.pop()
+        sizes[id(node)] = total = 1 + sum(sizes.get(id(c), 1) for c in children)
+        if total > MAX_NODES:
+            raise PipelineError(f"{what}: its aliases expand to more than {MAX_NODES} values "
+                                "(an alias bomb?); write the values out, or use fewer aliases")
 
 
 def _load_yaml(path: Path) -> tuple[Any, dict[str, int]]:
@@ -43,14 +81,14 @@ def _load_yaml(path: Path) -> tuple[Any, dict[str, int]]:
         raise PipelineError(f"cannot read params file {path}: {exc.strerror}") from None
     except UnicodeDecodeError as exc:
         raise PipelineError(f"params file {path} is not UTF-8 text (byte {exc.start})") from None
+    loader = Loader(text)
     try:
-        node = yaml.compose(text, Loader=Loader)
-        data = safe_load(text)
+        node = loader.get_single_node()
+        if node is not None:
+            _bounded(node, f"params file {path}")
     except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"{path}:{mark.line + 1}" if mark else str(path)
-        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise PipelineError(f"malformed YAML in {where}: {problem}") from None
+        loader.dispose()
+        raise _malformed(exc, path) from None
     lines: dict[str, int] = {}
 
     def walk(n, prefix):
@@ -64,14 +102,26 @@ def _load_yaml(path: Path) -> tuple[Any, dict[str, int]]:
                 walk(v, key)
 
     try:
-        walk(node, "")
+        walk(node, "")    # before constructing: merge keys ("<<") are flattened in place then
+        data = loader.construct_document(node) if node is not None else None
     except RecursionError:
         raise PipelineError(f"params file {path}: a YAML alias contains itself (recursive anchor)") from None
+    except yaml.YAMLError as exc:
+        raise _malformed(exc, path) from None
+    finally:
+        loader.dispose()
     if data is None:
         data = {}
     if not isinstance(data, dict):
         raise PipelineError(f"params file {path} must hold a mapping at the top level")
     return data, lines
+
+
+def _malformed(exc: yaml.YAMLError, path: Path) -> PipelineError:
+    mark = getattr(exc, "problem_mark", None)
+    where = f"{path}:{mark.line + 1}" if mark else str(path)
+    problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+    return PipelineError(f"malformed YAML in {where}: {problem}")
 
 
 def _plain_yaml(v: Any) -> bool:
@@ -141,16 +191,18 @@ def _lookup(tree: dict, dotted: str) -> Any:
     return cur
 
 
-def _merge(schema: dict, base: dict, overlay: dict, prefix: str, where_of) -> None:
+def _merge(schema: dict, base: dict, overlay: dict, prefix: str, where_of, origins: dict | None = None) -> None:
     for k, v in overlay.items():
         key = f"{prefix}.{k}" if prefix else str(k)
         where = where_of(key)
         if not isinstance(base, dict) or k not in base:
             raise _unknown(key, schema, where)
         if isinstance(base[k], dict) and isinstance(v, dict):
-            _merge(schema, base[k], v, key, where_of)
+            _merge(schema, base[k], v, key, where_of, origins)
         else:
             base[k] = _check_value(key, base[k], v, where)
+            if origins is not None:
+                origins[key] = where
 
 
 def get(params: dict, dotted: str) -> Any:
@@ -167,17 +219,21 @@ def parse_override(text: str) -> tuple[str, Any]:
     if not sep or not _KEY.match(key):
         raise PipelineError(f"malformed override {text!r}: expected KEY=VALUE with a dotted KEY")
     try:
-        value = safe_load(raw) if raw.strip() else ""
+        value = safe_load(raw, f"override {text!r}") if raw.strip() else ""
     except yaml.YAMLError:
         raise PipelineError(f"malformed value in override {text!r}: not valid YAML") from None
     return key, value
 
 
 def load(base_file: Path, profile: str | None = None, overrides: list[str] = (),
-         profiles_dir: Path | None = None) -> dict:
-    """params.yaml, then params/<profile>.yaml, then -p KEY=VALUE overrides, all validated."""
-    schema, _ = _load_yaml(base_file)
+         profiles_dir: Path | None = None, ranges_file: Path | None = None) -> dict:
+    """params.yaml, then params/<profile>.yaml, then -p KEY=VALUE overrides, all validated:
+    types against params.yaml, values against the ranges file when there is one."""
+    schema, base_lines = _load_yaml(base_file)
     params = copy.deepcopy(schema)
+    origins: dict[str, str] = {}    # dotted key -> the profile line or -p that set it
+    if profile is not None and not profile.strip():
+        raise PipelineError("--profile is empty: name a profile (default, or a file of params/)")
     if profile and profile != "default":
         pdir = profiles_dir or base_file.parent / "params"
         pfile = pdir / f"{profile}.yaml"
@@ -185,7 +241,7 @@ def load(base_file: Path, profile: str | None = None, overrides: list[str] = (),
             known = sorted(p.stem for p in pdir.glob("*.yaml")) if pdir.is_dir() else []
             raise PipelineError(f"unknown profile '{profile}' (known: {', '.join(['default'] + known)})")
         overlay, lines = _load_yaml(pfile)
-        _merge(schema, params, overlay, "", lambda k: f"{pfile}:{lines.get(k, '?')}")
+        _merge(schema, params, overlay, "", lambda k: f"{pfile}:{lines.get(k, '?')}", origins)
     for text in overrides:
         key, value = parse_override(text)
         parent, _, leaf = key.rpartition(".")
@@ -196,7 +252,23 @@ def load(base_file: Path, profile: str | None = None, overrides: list[str] = (),
         if not isinstance(holder, dict) or leaf not in holder:
             raise _unknown(key, schema, f"-p {text}")
         if isinstance(holder[leaf], dict) and isinstance(value, dict):
-            _merge(schema, holder[leaf], value, key, lambda k: f"-p {text}")
+            _merge(schema, holder[leaf], value, key, lambda k: f"-p {text}", origins)
         else:
             holder[leaf] = _check_value(key, holder[leaf], value, f"-p {text}")
+            origins[key] = f"-p {text}"
+    if ranges_file is not None:
+        from pipeline import ranges
+
+        def where_of(key: str) -> str:
+            """The nearest setting of the key or of a mapping holding it: a value inherited
+            through a YAML merge key ("<<") has no line of its own."""
+            k = key
+            while k:
+                if k in origins:
+                    return origins[k]
+                if k in base_lines:
+                    return f"{base_file}:{base_lines[k]}"
+                k = k.rpartition(".")[0]
+            return str(base_file)
+        ranges.check(params, ranges.load(ranges_file, _load_yaml), where_of)
     return params

@@ -204,10 +204,12 @@ def execute(task: dict) -> dict:
                 kwargs["checkpoint"] = str(checkpoint)
             for arg, ref in task["inputs"].items():
                 if isinstance(ref, dict):
-                    kwargs[arg] = {label: Artifact(store.path(k)) for label, k in ref.items()}
-                    opened += kwargs[arg].values()
+                    kwargs[arg] = {}
+                    for label, k in ref.items():
+                        kwargs[arg][label] = store.open(k, f"input '{arg}[{label}]' of {task['instance']}")
+                        opened.append(kwargs[arg][label])
                 else:
-                    kwargs[arg] = Artifact(store.path(ref))
+                    kwargs[arg] = store.open(ref, f"input '{arg}' of {task['instance']}")
                     opened.append(kwargs[arg])
             prov = {k: task[k] for k in ("node", "instance", "key", "code", "params", "grid",
                                          "inputs", "input_digests", "engine")}

@@ -236,6 +236,11 @@ def test_checkpoint_is_a_path_per_key_kept_on_failure_and_deleted_on_commit(toy)
     (["frobnicate"], "argument verb: invalid choice: 'frobnicate'"),
     (["run", "--executor", "dask", "--address", "foo"], "cannot reach Dask scheduler at foo"),
     (["report", "--out", "/proc/nope"], "cannot write report to /proc/nope"),
+    (["run", "shifted[]"], "malformed target or reference 'shifted[]': empty brackets; use shifted or "
+                           "shifted[*] for every instance"),
+    (["run", "--profile", ""], "--profile is empty: name a profile (default, or a file of params/)"),
+    (["run", "--store", ""], "--store is empty: name a store directory (default: artifacts/)"),
+    (["verify", "--store", " "], "--store is empty"),
 ])
 def test_bad_input_one_line_exit_2(toy, args, message):
     p = cli(toy, *args, check=False)
@@ -434,3 +439,68 @@ def test_corrupt_folder_that_is_a_file_is_named(toy):
     assert p.returncode == 2 and p.stderr.count("\n") == 1
     assert f"artifact {key} is damaged (" in p.stderr and "cannot be moved aside" in p.stderr
     assert path.exists()
+
+
+# -- trust: files that are intact but not what their names say ------------------------------
+
+def test_an_artifact_copied_over_another_is_found_by_verify_and_run(toy):
+    """A swapped file is intact (its digest matches its content), so only the key it carries
+    tells: verify names it, and a run recomputes it instead of feeding it downstream."""
+    import shutil
+    first = run_json(toy)
+    keys = {n["name"]: n["key"] for n in first["nodes"]}
+    objects = toy / "artifacts" / "objects"
+    total = json.loads(cli(toy, "metrics", "--json").stdout)["toy/total"]
+    shutil.copyfile(objects / f"{keys['shifted[letter=b]']}.h5", objects / f"{keys['shifted[letter=a]']}.h5")
+    v = cli(toy, "verify", check=False)
+    assert v.returncode == 1 and "1 corrupt" in v.stdout
+    assert f"corrupt {keys['shifted[letter=a]']}: holds artifact {keys['shifted[letter=b]']}" in v.stdout
+    out = run_json(toy)
+    assert statuses(out)["shifted[letter=a]"] == "ran" and statuses(out)["summary"] == "cutoff"
+    assert json.loads(cli(toy, "metrics", "--json").stdout)["toy/total"] == total
+    assert cli(toy, "verify").returncode == 0
+
+
+def test_an_edited_metric_in_an_index_record_is_not_reported(toy):
+    run_json(toy)
+    total = json.loads(cli(toy, "metrics", "--json").stdout)["toy/total"]
+    (rec_path,) = [p for p in (toy / "artifacts" / "index").glob("*.json")
+                   if json.loads(p.read_text())["instance"] == "summary"]
+    rec = json.loads(rec_path.read_text())
+    rec["metrics"]["toy/total"] = -7e-15
+    rec_path.write_text(json.dumps(rec))
+    assert json.loads(cli(toy, "metrics", "--json").stdout)["toy/total"] == total
+    assert json.loads(rec_path.read_text())["metrics"]["toy/total"] == total   # rebuilt
+    rec_path.write_text(json.dumps(rec))
+    v = cli(toy, "verify", check=False)
+    assert v.returncode == 1 and f"corrupt index/{rec_path.name}: damaged record" in v.stdout
+    assert not rec_path.exists() and cli(toy, "verify").returncode == 0
+
+
+def test_metrics_rebuilds_a_deleted_index_from_the_objects(toy):
+    run_json(toy)
+    before = json.loads(cli(toy, "metrics", "--json").stdout)
+    import shutil
+    shutil.rmtree(toy / "artifacts" / "index")
+    assert json.loads(cli(toy, "metrics", "--json").stdout) == before
+    assert len(list((toy / "artifacts" / "index").glob("*.json"))) == 6
+    assert set(statuses(run_json(toy)).values()) == {"cached"}
+
+
+def test_verify_refuses_an_unreadable_objects_folder_and_deletes_nothing(toy, monkeypatch, capsys):
+    run_json(toy)
+    objects = toy / "artifacts" / "objects"
+    index = sorted(p.name for p in (toy / "artifacts" / "index").iterdir())
+    real = os.scandir
+
+    def scandir(path="."):
+        if Path(path).resolve() == objects.resolve():
+            raise PermissionError(13, "Permission denied", str(path))
+        return real(path)
+    monkeypatch.chdir(toy)
+    monkeypatch.setattr(os, "scandir", scandir)
+    assert main(["verify"]) == 2
+    err = capsys.readouterr().err
+    assert err == f"pipeline: error: cannot read {objects}: Permission denied (nothing was changed)\n"
+    monkeypatch.undo()
+    assert sorted(p.name for p in (toy / "artifacts" / "index").iterdir()) == index
