@@ -51,23 +51,21 @@ def safe_load(text: str, what: str = "YAML"):
 def _bounded(root, what: str) -> None:
     """Count the values the node graph expands to, each shared node's size computed once,
     so that counting stays linear in the file however far its aliases expand."""
-    sizes: dict[int, int] = {}
-    entered: set[int] = set()
-    stack = [root]
+    sizes: dict[int, int | None] = {}      # None: being counted (a node inside itself counts 1)
+    stack: list = [(root, None)]
     while stack:
-        node = stack[-1]
-        if id(node) in sizes:
-            stack.pop()
+        node, kids = stack.pop()
+        if kids is None:
+            if id(node) in sizes:
+                continue
+            kids = ([c for kv in node.value for c in kv] if isinstance(node, yaml.MappingNode)
+                    else node.value if isinstance(node, yaml.SequenceNode) else ())
+            sizes[id(node)] = None
+            stack.append((node, kids))
+            stack += [(c, None) for c in kids
+                      if not isinstance(c, yaml.ScalarNode) and id(c) not in sizes]
             continue
-        children = ([c for kv in node.value for c in kv] if isinstance(node, yaml.MappingNode)
-                    else list(node.value) if isinstance(node, yaml.SequenceNode) else [])
-        if id(node) not in entered:
-            entered.add(id(node))
-            # a node inside itself (a recursive anchor) is left to the caller's own error
-            stack += [c for c in children if id(c) not in sizes and id(c) not in entered]
-            continue
-        stack.pop()
-        sizes[id(node)] = total = 1 + sum(sizes.get(id(c), 1) for c in children)
+        sizes[id(node)] = total = 1 + sum(sizes.get(id(c)) or 1 for c in kids)
         if total > MAX_NODES:
             raise PipelineError(f"{what}: its aliases expand to more than {MAX_NODES} values "
                                 "(an alias bomb?); write the values out, or use fewer aliases")

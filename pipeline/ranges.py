@@ -9,6 +9,7 @@ path (`*` matches any one key at its level: `sensors.*.spacing_mm`) to a rule:
   len: n, min_len, max_len a list's length
   items: {rule}            every item of a list, or every value of a mapping
   whole: true              a whole number (an int, or a float such as 3.0)
+  multiple_of: n           a whole multiple of n (image sides a network halves k times)
   nullable: true           null passes (the rest of the rule checks other values)
 
 Checked on the merged params (base, profile, -p overrides) before anything runs, so a value
@@ -26,7 +27,8 @@ from pipeline.errors import PipelineError
 
 BOUNDS = {"gt": (">", lambda v, b: v > b), "ge": (">=", lambda v, b: v >= b),
           "lt": ("<", lambda v, b: v < b), "le": ("<=", lambda v, b: v <= b)}
-RULE_KEYS = set(BOUNDS) | {"one_of", "key_of", "len", "min_len", "max_len", "items", "whole", "nullable"}
+RULE_KEYS = set(BOUNDS) | {"one_of", "key_of", "len", "min_len", "max_len", "items", "whole", "nullable",
+                           "multiple_of"}
 
 
 def load(path: Path, load_yaml: Callable) -> list[tuple[str, dict, str]]:
@@ -47,7 +49,7 @@ def _check_rule(pattern: str, rule: Any, where: str) -> None:
     if unknown:
         raise PipelineError(f"ranges file {where}: '{pattern}' has unknown rule(s) {', '.join(sorted(map(str, unknown)))} "
                             f"(known: {', '.join(sorted(RULE_KEYS))})")
-    for k in BOUNDS:
+    for k in [*BOUNDS, "multiple_of"]:
         if k in rule and not _number(rule[k]):
             raise PipelineError(f"ranges file {where}: '{pattern}' {k} must be a number, got {rule[k]!r}")
     for k in ("len", "min_len", "max_len"):
@@ -111,7 +113,7 @@ def _violation(value: Any, rule: dict, params: dict, key: str) -> tuple[str, Any
         if not isinstance(value, str) or value not in names:
             return key, value, f"must name an entry of {' or '.join(paths)}"
     bounds = [k for k in BOUNDS if k in rule]
-    if bounds or rule.get("whole"):
+    if bounds or rule.get("whole") or "multiple_of" in rule:
         if not _number(value) or not math.isfinite(value):
             return key, value, "must be a finite number"
         for k in bounds:
@@ -120,6 +122,8 @@ def _violation(value: Any, rule: dict, params: dict, key: str) -> tuple[str, Any
                 return key, value, f"must be {sign} {rule[k]}"
         if rule.get("whole") and float(value) != int(value):
             return key, value, "must be a whole number"
+        if "multiple_of" in rule and value % rule["multiple_of"]:
+            return key, value, f"must be a multiple of {rule['multiple_of']}"
     lengths = [k for k in ("len", "min_len", "max_len") if k in rule]
     if lengths:
         if not isinstance(value, list):

@@ -9,6 +9,7 @@ import pytest
 
 from pipeline import params as P
 from pipeline.config import find_project
+from pipeline.errors import PipelineError
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -31,8 +32,100 @@ def test_dvc_yaml_in_sync():
 @pytest.mark.parametrize("profile", ["default", "ci", "paper", "allpairs"])
 def test_profiles_load(profile):
     project = find_project(ROOT)
-    params = P.load(project.params_file, profile, [], project.profiles_dir)
-    project.load_graph().expand(params)  # every reference resolves
+    assert project.ranges_file == ROOT / "params.ranges.yaml"
+    params = P.load(project.params_file, profile, [], project.profiles_dir, project.ranges_file)
+    project.load_graph().expand(params)  # every reference resolves, every value is in its range
+
+
+# values each of which only a node refused, with exit 1 and its traceback, some minutes in
+@pytest.mark.parametrize("override,rule", [
+    ("collection_trajectory.n_points=-3", ">= 1"),
+    ("m2m.pretrain.steps=-5", ">= 1"),
+    ("m2m.finetune.batch_size=0", ">= 1"),
+    ("m2m.pretrain.lr=-1.0", "> 0"),
+    ("m2m.pretrain.steps=1000000000000000000000000", "<= 10000000"),
+    ("force.steps=-1", ">= 1"),
+    ("render.spp=-4", "one of 1, 4, 9, 16, 25, 36, 49, 64"),
+    ("render.spp=2", "one of 1, 4, 9, 16, 25, 36, 49, 64"),
+    ("sensors.sim.spacing_mm=0.0", "> 0"),
+    ("sensors.gelsight-r8.spacing_mm=0", "> 0"),          # its value came through `<<: *gelsight`
+    ("calibration_trajectory.n_steps=0", ">= 1"),
+    ("patterns.image_size=[1000000, 1000000]", "<= 4096"),
+    ("capture.sensor=gelsight-Z-IX", "skins or sensors"),
+    ("force.compensation=both", "one of normal, axes, contact"),
+    ("segmentation.method=watershed", "one of otsu, grabcut"),
+    ("control.objects.grape.shape=cube", "one of sphere, cylinder, flat"),
+    ("m2m.redraw_match=all", "one of none, spread, shift"),
+    ("force.config.input_size=40", "a multiple of 16"),
+    ("materials.r6.nu=0.5", "< 0.5"),
+])
+def test_a_value_out_of_its_range_is_refused_before_anything_runs(override, rule):
+    project = find_project(ROOT)
+    key = override.split("=")[0]
+    with pytest.raises(PipelineError) as err:
+        P.load(project.params_file, "ci", [override], project.profiles_dir, project.ranges_file)
+    message = str(err.value)
+    assert message.startswith(f"param '{key}") and f"(-p {override}) must " in message
+    assert f"{rule} (range '" in message
+    assert message.endswith(")") and "params.ranges.yaml:" in message
+
+
+def test_the_cli_refuses_an_out_of_range_value_in_one_line_and_builds_nothing(tmp_path):
+    store = tmp_path / "store"
+    p = pipeline("run", "collection_trajectory", "--profile", "ci", "--store", str(store),
+                 "-p", "collection_trajectory.n_points=-3", check=False)
+    assert p.returncode == 2 and p.stdout == "" and "Traceback" not in p.stderr
+    assert p.stderr == ("pipeline: error: param 'collection_trajectory.n_points' = -3 "
+                        "(-p collection_trajectory.n_points=-3) must be >= 1 (range "
+                        f"'collection_trajectory.n_points' in {ROOT / 'params.ranges.yaml'}:16)\n")
+    assert not store.exists()
+
+
+def _ranges() -> dict:
+    from pipeline.params import safe_load
+    return safe_load((ROOT / "params.ranges.yaml").read_text())
+
+
+def _constant(package: str, name: str):
+    """A constant of the first module of `package` that defines it (modules may move)."""
+    import importlib
+    import pkgutil
+    pkg = importlib.import_module(package)
+    for info in pkgutil.iter_modules(pkg.__path__):
+        module = importlib.import_module(f"{package}.{info.name}")
+        if name in vars(module):
+            return vars(module)[name]
+    raise AssertionError(f"no {name} in {package}")
+
+
+def test_the_ranges_option_lists_are_the_nodes_own():
+    """An option a node adds or drops must be added to or dropped from params.ranges.yaml too."""
+    r = _ranges()
+    one_of = lambda key: r[key].get("one_of") or r[key]["items"]["one_of"]   # noqa: E731
+    from stages.capture.devices import DEVICES
+    from stages.control.objects import SHAPES, TARGET_N
+    from stages.force.compensation import MODES
+    from stages.force.model import INPUT_MODES, MIRROR_READS
+    from stages.markers import mitsuba_backend, segment, unify, uskin
+    from stages.markers.patterns import PATTERNS
+    from stages.sim.indenters import ALL_INDENTERS
+    expected = {
+        "indenters.names": ALL_INDENTERS, "calibration_trajectory.indenter": ALL_INDENTERS,
+        "patterns.names": PATTERNS, "skins.*.look": unify.LOOKS, "skins.*.variant": uskin.VARIANTS,
+        "render.backend": ("auto", *mitsuba_backend.VARIANTS), "segmentation.method": segment.METHODS,
+        "segmentation.*.polarity": segment.POLARITIES, "capture.devices": tuple(DEVICES),
+        "control.objects.*.shape": SHAPES, "control.objects.*.fragility": tuple(TARGET_N),
+        "m2m.redraw_match": _constant("stages.m2m", "REDRAW_MATCH"),
+        "force.config.input_mode": INPUT_MODES, "force.config.mirror_read": MIRROR_READS,
+        "force.compensation": MODES, "force.compensation_depth": _constant("stages.force", "DEPTH_MODES"),
+        "force.align": _constant("stages.force", "ALIGN_MODES"),
+        "force.readout": _constant("stages.force", "READOUT_MODES"),
+        "force.splice": _constant("stages.force", "SPLICE_MODES"),
+        "force.fz_readout": _constant("stages.force", "FZ_READOUT_MODES"),
+        "force.ensemble": _constant("stages.force", "ENSEMBLE_MODES"),
+    }
+    for key, options in expected.items():
+        assert sorted(one_of(key)) == sorted(options), key
 
 
 def test_allpairs_adds_pairs_and_changes_nothing_else():
