@@ -318,6 +318,15 @@ class _Run:
             except DeviceError as exc:
                 raise DeviceError(f"{exc} (trajectory frame {r}, contact {int(t['contact_id'][r])})") from None
         self.goto([point[0], point[1], self.approach])
+        if self.cam is not None:
+            # a contact ending in repeated frames is the start of a disconnect unless the camera
+            # delivers again: committed, it would be kept by the resume, unlike the frames an
+            # uninterrupted capture takes there
+            try:
+                self.cam.confirm()
+            except DeviceError as exc:
+                raise DeviceError(f"{exc} (end of contact {int(t['contact_id'][rows[-1]])}, "
+                                  "which is captured again)") from None
         self.st.commit(self.counts(), time.monotonic() - t0)
 
 

@@ -139,6 +139,20 @@ def test_camera_that_stops_delivering_is_an_error(run_capture, tmp_path):
         run_capture(tmp_path, camera={"faults": {"disconnect_after": 30}})
 
 
+def test_a_camera_lost_at_the_end_of_a_contact_does_not_commit_it(run_capture, baseline, tmp_path):
+    """The camera serves 23 frames (the reference and the first contact's first 22 rows) and no
+    more: the first contact would end in two repeated frames marked invalid.  It is not
+    committed; the resume captures it again, so the dataset equals an uninterrupted one."""
+    data, _ = baseline
+    msg, staged, rows = _interrupted(run_capture, tmp_path, r"^camera 0: no frame for 10 reads after 25 samples "
+                                                            r"\(end of contact 0, which is captured again\)$",
+                                     camera={"faults": {"disconnect_after": 23}})
+    assert rows == 0 and len(staged["raw"]) == 0
+    resumed, final = run_capture(tmp_path)
+    _same(resumed, data)
+    assert resumed["camera_valid"].all() and final["attrs"]["sessions"] == 2
+
+
 def test_protective_stop_then_resume(run_capture, baseline, tmp_path):
     data, _ = baseline
     # moves: clearance, approach, 24 frames, lift (27); second contact (another indenter):
