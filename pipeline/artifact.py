@@ -152,7 +152,9 @@ class ArtifactWriter:
             else:
                 self._json_attrs.discard(k)
 
-    def commit(self) -> dict:
+    def commit(self, durable: bool = False) -> dict:
+        """Publish the artifact; `durable`: its folder's entry is fsync'd too, so that what the
+        caller deletes next (a capture's staging file) is never the only copy after a crash."""
         for name in self._streams:  # an empty stream is still a dataset
             if name not in self.digest._datasets:
                 ds = self._streams[name]
@@ -172,7 +174,7 @@ class ArtifactWriter:
         self.file.close()
         record = {k: prov.get(k) for k in ("key", "digest", "node", "instance", "created",
                                              "seconds", "metrics", "inputs")}
-        return self.store._publish(self.key, self.tmp, record)
+        return self.store._publish(self.key, self.tmp, record, durable=durable)
 
     def abort(self) -> None:
         try:

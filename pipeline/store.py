@@ -324,16 +324,14 @@ class Store:
         # the artifact carries its own key: a file copied over another key's path is found
         return ArtifactWriter(self, key, tmp, {**provenance, "key": key})
 
-    def _publish(self, key: str, tmp: Path, record: dict) -> dict:
-        fd = os.open(tmp, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+    def _publish(self, key: str, tmp: Path, record: dict, durable: bool = False) -> dict:
+        _fsync(tmp)
         final = self.path(key)
-        # no directory fsync: a rename lost to a power cut leaves the artifact missing
-        # (recomputed), never partial
+        # no directory fsync by default: a rename lost to a power cut leaves the artifact
+        # missing (recomputed), never partial; `durable` fsyncs it, for what cannot be recomputed
         os.replace(tmp, final)
+        if durable:
+            _fsync(self.objects)
         st = final.stat()
         record.update(path=os.path.relpath(final, self.root), bytes=st.st_size,
                       mtime_ns=st.st_mtime_ns, host=socket.gethostname())
@@ -499,6 +497,14 @@ class Store:
 
 
 TMP_MAX_AGE_S = 24 * 3600
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def _abandoned(tmp: Path) -> bool:

@@ -11,8 +11,12 @@ A function with a `staging_dir` parameter gets `<store>/staging` (hardware captu
 resumable staging files there).  A function with a `checkpoint` parameter gets a path of its
 own in it, `<store>/staging/<key>.ckpt`: long training saves its progress there and a later
 run of the same key (same code, params and inputs) resumes from it; the worker deletes the
-file once the artifact is committed.  An exception whose class sets `user_error = True` (a
-device that is missing or disconnects) is reported as one line, like a PipelineError.
+file once the artifact is committed.  A function with an `after_publish` parameter gets a
+callable: `after_publish(action)` runs `action()` once the artifact is durably published (its
+file and its folder's entry fsync'd), never when the node or the write fails; hardware capture
+deletes its staging file so, and a kill at any instant leaves the staging file or the artifact.
+An exception whose class sets `user_error = True` (a device that is missing or disconnects) is
+reported as one line, like a PipelineError.
 """
 from __future__ import annotations
 
@@ -202,6 +206,9 @@ def execute(task: dict) -> dict:
                 kwargs["staging_dir"] = str(store.staging)
             if checkpoint:
                 kwargs["checkpoint"] = str(checkpoint)
+            published: list = []
+            if "after_publish" in takes:
+                kwargs["after_publish"] = published.append
             for arg, ref in task["inputs"].items():
                 if isinstance(ref, dict):
                     kwargs[arg] = {}
@@ -216,10 +223,16 @@ def execute(task: dict) -> dict:
             prov["setup_seconds"] = time.time() - t0
             writer = store.writer(key, prov)
             _consume(func(**kwargs), writer)
-            rec = writer.commit()
+            rec = writer.commit(durable=bool(published))
             writer = None
             if checkpoint:
                 checkpoint.unlink(missing_ok=True)   # the artifact holds what it was for
+            for action in published:
+                try:
+                    action()
+                except Exception as exc:  # noqa: BLE001 - the artifact is safe; say what is left over
+                    print(f"pipeline: warning: {task['instance']}: after publishing: "
+                          f"{type(exc).__name__}: {exc}", file=sys.stderr)
             return {"record": rec, "computed": True}
         except BaseException as exc:  # report, don't crash the executor
             if writer is not None:
