@@ -407,6 +407,10 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
     except OSError as exc:  # the store or an output folder: read-only, full, vanished
+        from pipeline.store import StoreFull, disk_full
+        if disk_full(exc):
+            print(f"pipeline: error: {StoreFull(Path(exc.filename or '.'), None)}", file=sys.stderr)
+            return 2
         what = f" {exc.filename}" if exc.filename else ""
         print(f"pipeline: error: cannot use{what}: {exc.strerror or exc}", file=sys.stderr)
         return 2

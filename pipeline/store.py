@@ -99,16 +99,36 @@ def list_dir(folder: Path, pattern: str = "*") -> list[Path]:
     return sorted(folder / n for n in names if fnmatch.fnmatchcase(n, pattern))
 
 
-def raise_if_full(exc: OSError, where: Path, need: int) -> None:
+def disk_full(exc: BaseException | None) -> bool:
+    """Whether an exception, or one it was raised from, is a full disk (h5py and torch wrap
+    the OSError, or only say so in their message)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        if getattr(exc, "errno", None) in (errno.ENOSPC, errno.EDQUOT) or "No space left on device" in str(exc):
+            return True
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
+def raise_if_full(exc: OSError, where: Path, need: int | None) -> None:
     """A write that failed for lack of space becomes the one-line 'store full' error."""
-    if exc.errno in (errno.ENOSPC, errno.EDQUOT) or "No space left on device" in str(exc):
+    if disk_full(exc):
         raise StoreFull(where, need) from None
 
 
 class StoreFull(PipelineError):
-    def __init__(self, where: Path, need: int):
-        free, device = _free_space(where)
-        super().__init__(f"store full: {free} bytes free on {device}, need about {need}")
+    """The store's disk is full: one line, exit 2.  The free space is measured when the message
+    is shown, after the writer deleted its temp file: what the user can count on."""
+
+    def __init__(self, where: Path, need: int | None):
+        super().__init__(where, need)
+        self.where, self.need = Path(where), need
+
+    def __str__(self) -> str:
+        free, device = _free_space(self.where)
+        wanted = f", need about {self.need}" if self.need else ""
+        return f"store full: {free} bytes free on {device}{wanted}"
 
 
 def _free_space(where: Path) -> tuple[int, str]:
@@ -325,7 +345,11 @@ class Store:
         return ArtifactWriter(self, key, tmp, {**provenance, "key": key})
 
     def _publish(self, key: str, tmp: Path, record: dict, durable: bool = False) -> dict:
-        _fsync(tmp)
+        try:
+            _fsync(tmp)     # a filesystem that allocates late may find the disk full only now
+        except OSError as exc:
+            raise_if_full(exc, self.objects, tmp.stat().st_size)
+            raise
         final = self.path(key)
         # no directory fsync by default: a rename lost to a power cut leaves the artifact
         # missing (recomputed), never partial; `durable` fsyncs it, for what cannot be recomputed

@@ -239,6 +239,9 @@ def execute(task: dict) -> dict:
                 writer.abort()
             if isinstance(exc, KeyboardInterrupt):
                 raise
+            from pipeline.store import StoreFull, disk_full
+            if not isinstance(exc, PipelineError) and disk_full(exc):  # the node's own files
+                exc = StoreFull(store.root, None)
             # errors meant for the user (bad input, a missing device): one line, no traceback
             user = isinstance(exc, PipelineError) or getattr(exc, "user_error", False) is True
             if not user:  # a damaged input (intact size and mtime) is the store's, not the node's

@@ -1,6 +1,7 @@
 """Crashes, concurrency, corruption and bad input never damage the store."""
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -504,3 +505,32 @@ def test_verify_refuses_an_unreadable_objects_folder_and_deletes_nothing(toy, mo
     assert err == f"pipeline: error: cannot read {objects}: Permission denied (nothing was changed)\n"
     monkeypatch.undo()
     assert sorted(p.name for p in (toy / "artifacts" / "index").iterdir()) == index
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 2 MiB tmpfs (needs the right to mount: root in a container)."""
+    mnt = tmp_path / "disk"
+    mnt.mkdir()
+    p = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(mnt)], capture_output=True)
+    if p.returncode:
+        pytest.skip("cannot mount a tmpfs here (test_store simulates the full disk instead)")
+    yield mnt
+    subprocess.run(["umount", str(mnt)], check=True)
+
+
+def test_a_full_disk_is_one_line_and_damages_nothing(toy, small_disk):
+    """On a real 2 MiB disk: a 4.8 MB artifact fails with one line, exit 2 (it segfaulted, rc 139,
+    after h5py's errors), its temp file is gone, and what the store held is intact."""
+    store = small_disk / "store"
+    first = run_json(toy, "--store", str(store))
+    p = cli(toy, "run", "--store", str(store), "-p", "size=400000", check=False)
+    assert p.returncode == 2 and p.stdout == "" and p.stderr.count("\n") == 1, p.stderr[-3000:]
+    assert p.stderr.startswith(f"pipeline: error: node base: store full: ") and "Traceback" not in p.stderr
+    free, need = (int(v) for v in re.match(r".*store full: (\d+) bytes free on " + re.escape(str(small_disk))
+                                             + r" \(tmpfs\), need about (\d+)$", p.stderr.strip()).groups())
+    assert 0 < free < 2 * 2**20 < need
+    assert not [q for q in (store / "objects").iterdir() if q.name.startswith(".")]
+    assert cli(toy, "verify", "--store", str(store)).returncode == 0
+    assert set(statuses(run_json(toy, "--store", str(store))).values()) == {"cached"}
+    assert len(first["nodes"]) == len(list((store / "objects").glob("*.h5")))

@@ -360,3 +360,48 @@ def test_gc_keeps_the_inputs_of_a_kept_artifact_whose_record_is_damaged(tmp_path
     (store.index / "b.json").write_text("{}")
     assert store.gc({"b"}) == []
     assert store.path("c").exists()
+
+
+FULL_SCRIPT = """
+import errno, sys
+import numpy as np
+from pipeline import artifact
+from pipeline.store import Store, StoreFull
+budget = [int(sys.argv[2])]
+real = artifact._TempFile._write
+
+def write(self, view):                    # a disk with `budget` bytes left
+    if len(view) > budget[0]:
+        raise OSError(errno.ENOSPC, "No space left on device")
+    budget[0] -= len(view)
+    return real(self, view)
+store = Store(sys.argv[1]).init()
+w = store.writer("a", {"node": "n", "instance": "n", "inputs": {}})
+w.put("x", np.arange(10))
+w.commit()
+artifact._TempFile._write = write
+w = store.writer("b", {"node": "n", "instance": "n", "inputs": {}})
+rng = np.random.default_rng(0)
+try:
+    for i in range(50):
+        w.append("images", rng.integers(0, 255, (16, 64, 64), dtype=np.uint8))
+    w.commit()
+except StoreFull as exc:
+    w.abort()
+    print(exc)
+"""
+
+
+def test_a_disk_full_while_writing_is_one_error_and_leaves_only_what_was_there(tmp_path):
+    """HDF5 never sees the failed write (after one it can neither flush nor close its file and
+    crashes the process at exit, rc 139): one StoreFull, the temp file deleted, a clean exit."""
+    import subprocess
+    import sys
+    p = subprocess.run([sys.executable, "-c", FULL_SCRIPT, str(tmp_path), str(300_000)], capture_output=True,
+                       text=True, env={**os.environ, "PYTHONPATH": str(Path(__file__).parents[2])}, timeout=120)
+    assert p.returncode == 0 and p.stderr == "", p.stderr[-2000:]
+    import re
+    m = re.fullmatch(r"store full: (\d+) bytes free on (.+), need about (\d+)\n", p.stdout)
+    assert m and int(m.group(3)) > 300_000, p.stdout          # at least what it had reached
+    store = Store(tmp_path)
+    assert [q.name for q in store.objects.iterdir()] == ["a.h5"] and store.verify() == []
