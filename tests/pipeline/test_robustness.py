@@ -86,6 +86,44 @@ def test_sigterm_stops_a_process_run_and_its_workers(toy):
     assert statuses(run_json(toy, "frames", "-p", "slow=0.01"))["frames"] == "ran"
 
 
+def _children(pid: int) -> list[int]:
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue
+        if int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out
+
+
+def test_workers_and_their_resource_tracker_exit_when_the_run_is_killed(toy):
+    """SIGKILL leaves no handler to stop the workers: they used to compute on, orphaned, with
+    multiprocessing's resource tracker (about 350 MB each on the ci profile)."""
+    f = toy / "toy" / "nodes.py"
+    f.write_text(f.read_text().replace(
+        "def frames(base, slow):\n",
+        "def frames(base, slow):\n    open('frames.pid', 'w').write(str(os.getpid()))\n"))
+    run_json(toy, "base")
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline", "run", "frames", "--executor", "process",
+                             "--jobs", "2", "-p", "slow=5"], cwd=toy, env=_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+    pid_file = toy / "frames.pid"
+    deadline = time.time() + 60
+    while not (pid_file.exists() and pid_file.read_text()) and time.time() < deadline:
+        time.sleep(0.05)
+    worker = int(pid_file.read_text())
+    helpers = _children(proc.pid)
+    assert worker in helpers and len(helpers) >= 2, helpers      # the worker and the resource tracker
+    proc.kill()
+    proc.wait()
+    deadline = time.time() + 5
+    while any(_running(p) for p in helpers) and time.time() < deadline:
+        time.sleep(0.05)
+    assert not [p for p in helpers if _running(p)], "processes outlive the killed run"
+
+
 def test_concurrent_runs_compute_each_node_once(toy, tmp_path):
     log = tmp_path / "log.txt"
     env = {**_env(), "TOY_LOG": str(log)}
