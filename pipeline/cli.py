@@ -121,7 +121,8 @@ class Context:
                         self.project.ranges_file)
         graph = self.project.load_graph()
         roots = [self.project.root, *self.project.source_roots]
-        return Scheduler(graph, params, self.store, list(dict.fromkeys(str(r) for r in roots)))
+        return Scheduler(graph, params, self.store, list(dict.fromkeys(str(r) for r in roots)),
+                         node_context=self.project.node_context)
 
 
 def _print_json(obj) -> None:

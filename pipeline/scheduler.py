@@ -32,8 +32,10 @@ class Planned:
 
 
 class Scheduler:
-    def __init__(self, graph: Graph, params: dict, store: Store, roots: list[str]):
+    def __init__(self, graph: Graph, params: dict, store: Store, roots: list[str],
+                 node_context: str | None = None):
         self.graph, self.params, self.store = graph, params, store
+        self.node_context = node_context     # "module:function": what every node runs inside
         self.roots = [str(r) for r in roots]
         self.instances = graph.expand(params)
         self.fingerprinter = Fingerprinter([Path(r) for r in self.roots])
@@ -117,7 +119,7 @@ class Scheduler:
                 "roots": self.roots, "node": inst.node.name, "instance": inst.name,
                 "params": inst.params, "grid": dict(inst.bindings), "inputs": parts["inputs"],
                 "input_digests": parts["input_digests"], "code": parts["code"],
-                "engine": ENGINE_VERSION, "force": force}
+                "engine": ENGINE_VERSION, "force": force, "context": self.node_context}
 
     def run(self, targets: list[str] | None = None, executor=None, *, force: bool = False,
             progress: bool = False, meta: dict | None = None) -> list[Planned]:

@@ -16,10 +16,13 @@ callable: `after_publish(action)` runs `action()` once the artifact is durably p
 file and its folder's entry fsync'd), never when the node or the write fails; hardware capture
 deletes its staging file so, and a kill at any instant leaves the staging file or the artifact.
 An exception whose class sets `user_error = True` (a device that is missing or disconnects) is
-reported as one line, like a PipelineError.
+reported as one line, like a PipelineError.  A task's "context" ("module:function", the
+project's [tool.pipeline] node_context) is a context manager every node runs inside, whatever
+executor runs it (the project pins its numeric libraries' threads there).
 """
 from __future__ import annotations
 
+import contextlib
 import importlib
 import inspect
 import math
@@ -222,7 +225,9 @@ def execute(task: dict) -> dict:
                                          "inputs", "input_digests", "engine")}
             prov["setup_seconds"] = time.time() - t0
             writer = store.writer(key, prov)
-            _consume(func(**kwargs), writer)
+            context = _import(task["context"], task.get("roots", [])) if task.get("context") else None
+            with context() if context else contextlib.nullcontext():
+                _consume(func(**kwargs), writer)
             rec = writer.commit(durable=bool(published))
             writer = None
             if checkpoint:

@@ -243,6 +243,46 @@ def test_report_of_the_ci_store(ci_store, tmp_path):
     assert len(figures) >= 20 and all(f.stat().st_size > 1000 for f in figures[:5])
 
 
+# one instance of each node family whose ci instance takes seconds, not minutes; the rest (the
+# studies, control, the transfers' training and the source nodes) are checked by a whole ci run
+# in each executor, too slow for the suite
+SAME_IN_EVERY_EXECUTOR = [
+    "indenters", "sim_trajectory", "collection_trajectory", "calibration_trajectory", "patterns",
+    "contact_check", "deform[sensor=sim]", "calibrate[sensor=sim]", "render[skin=Array1]",
+    "taxels[skin=uskin-3axis]", "markers[skin=Array1]", "features[skin=Array1]",
+    "flow_warp[source=Array1,target=Array2]", "m2m_sim", "m2m", "m2m_seed[seed=1]",
+    "translate_sim[source=Circle1,target=Diamond3]", "translate[source=gelsight-A-I,target=gelsight-A-II]",
+    "translate_seed[source=gelsight-A-II,target=tactip,seed=1]", "own[skin=gelsight-A-II]",
+    "transfer_seed[seed=1]"]
+LEFT_TO_A_WHOLE_RUN = {"transfer", "hetero_seed", "sim_m2m", "homo", "material", "hetero", "control",
+                       "capture", "capture_calibration", "ingest"}
+
+
+def test_every_node_family_is_compared_across_executors_or_listed_as_left_out():
+    graph = find_project(ROOT).load_graph()
+    compared = {name.partition("[")[0] for name in SAME_IN_EVERY_EXECUTOR}
+    assert compared | LEFT_TO_A_WHOLE_RUN == set(graph.nodes) and not compared & LEFT_TO_A_WHOLE_RUN
+
+
+def test_node_families_make_the_same_content_inline_as_in_a_process_pool(ci_store, tmp_path):
+    """`make run` built the ci store in a pool of spawned processes (each with its share of the
+    cores); recomputed here by the inline executor from the same inputs, each instance has the
+    same content digest.  flow_warp's did not: its features took torch's default threads."""
+    import shutil
+    store, _ = ci_store
+    copy = tmp_path / "store"
+    shutil.copytree(store, copy)
+    built = {n["name"]: n["key"] for n in json.loads(pipeline("status", "--profile", "ci", "--json", "--store",
+                                                                  str(copy), *SAME_IN_EVERY_EXECUTOR).stdout)["nodes"]}
+    before = {name: json.loads((copy / "index" / f"{key}.json").read_text())["digest"] for name, key in built.items()}
+    out = json.loads(pipeline("run", "--profile", "ci", "--store", str(copy), "--force", "--json",
+                              *SAME_IN_EVERY_EXECUTOR).stdout)
+    ran = {n["name"]: n for n in out["nodes"] if n["status"] == "ran"}
+    assert sorted(ran) == sorted(SAME_IN_EVERY_EXECUTOR)
+    after = {name: json.loads((copy / "index" / f"{n['key']}.json").read_text())["digest"] for name, n in ran.items()}
+    assert {n: d for n, d in after.items() if d != before[n]} == {}
+
+
 def test_noop_run_imports_no_science(ci_store):
     """Deciding that nothing is stale must not import torch, mitsuba, cv2 or even h5py."""
     store, _ = ci_store

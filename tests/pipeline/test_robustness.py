@@ -14,6 +14,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pipeline.cli import main
+import toyproject
 from toyproject import cli, run_json, statuses
 
 REPO = Path(__file__).resolve().parents[2]
@@ -191,6 +192,24 @@ def test_process_workers_share_the_cores(monkeypatch):
         assert ex.result(ex.submit(_thread_env, {})) == {"OMP_NUM_THREADS": "2", "MKL_NUM_THREADS": "3"}
     finally:
         ex.close()
+
+
+@pytest.mark.parametrize("executor", ["inline", "process"])
+def test_every_node_runs_inside_the_projects_node_context(toy, executor):
+    """[tool.pipeline] node_context names a context manager the worker enters around every
+    node, whichever executor runs it (the project pins its numeric libraries' threads so)."""
+    (toy / "pyproject.toml").write_text(toyproject.PYPROJECT + 'node_context = "toy.ctx:pinned"\n')
+    (toy / "toy" / "ctx.py").write_text(
+        "import contextlib, os\n\n\n@contextlib.contextmanager\ndef pinned():\n"
+        "    os.environ['TOY_CTX'] = '3'\n    try:\n        yield\n    finally:\n"
+        "        del os.environ['TOY_CTX']\n")
+    f = toy / "toy" / "nodes.py"
+    f.write_text(f.read_text().replace(
+        '    return {"x": normalise(np.asarray(base["x"])) * scale}',
+        '    return {"x": normalise(np.asarray(base["x"])) * scale, "ctx": np.array(float(os.environ.get("TOY_CTX", -1)))}'))
+    run_json(toy, "scaled", "--executor", executor, "--jobs", "2")
+    with h5py.File(cli(toy, "get", "scaled").stdout.strip()) as art:
+        assert art["ctx"][()] == 3.0
 
 
 @pytest.mark.parametrize("executor", ["process", "dask"])
