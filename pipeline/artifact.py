@@ -187,7 +187,7 @@ class ArtifactWriter:
 
     def _check_space(self) -> None:
         if self._raw.full is not None:
-            from pipeline.store import StoreFull
+            from pipeline.space import StoreFull
             raise StoreFull(self.tmp.parent, self._raw.size)
 
     def set_attrs(self, attrs: Mapping[str, Any]) -> None:

@@ -408,7 +408,7 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
     except OSError as exc:  # the store or an output folder: read-only, full, vanished
-        from pipeline.store import StoreFull, disk_full
+        from pipeline.space import StoreFull, disk_full
         if disk_full(exc):
             print(f"pipeline: error: {StoreFull(Path(exc.filename or '.'), None)}", file=sys.stderr)
             return 2

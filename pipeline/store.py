@@ -10,12 +10,13 @@ Layout under the store root:
   corrupt/              artifacts that failed verification, moved aside, never deleted
 
 Writes go to a temp file in objects/, are fsync'd, then os.replace'd into place, so a
-crash leaves no readable partial artifact.
+crash leaves no readable partial artifact.  An artifact carries its own key (provenance
+"key"), checked whenever it is read or verified; records, refs and run logs carry "check",
+the digest of their content, checked whenever they are read.
 """
 from __future__ import annotations
 
 import contextlib
-import errno
 import fcntl
 import json
 import os
@@ -27,6 +28,7 @@ from typing import Any, Iterator
 
 from pipeline.errors import PipelineError
 from pipeline.hashing import digest_obj
+from pipeline.space import raise_if_full
 
 def _atomic_write_text(path: Path, text: str) -> None:
     """Whole or absent, never half-written; a failed write (a full disk) leaves no temp file.
@@ -97,62 +99,6 @@ def list_dir(folder: Path, pattern: str = "*") -> list[Path]:
     except OSError as exc:
         raise PipelineError(f"cannot read {folder}: {exc.strerror or exc} (nothing was changed)") from None
     return sorted(folder / n for n in names if fnmatch.fnmatchcase(n, pattern))
-
-
-def disk_full(exc: BaseException | None) -> bool:
-    """Whether an exception, or one it was raised from, is a full disk (h5py and torch wrap
-    the OSError, or only say so in their message)."""
-    seen = set()
-    while exc is not None and id(exc) not in seen:
-        seen.add(id(exc))
-        if getattr(exc, "errno", None) in (errno.ENOSPC, errno.EDQUOT) or "No space left on device" in str(exc):
-            return True
-        exc = exc.__cause__ or exc.__context__
-    return False
-
-
-def raise_if_full(exc: OSError, where: Path, need: int | None) -> None:
-    """A write that failed for lack of space becomes the one-line 'store full' error."""
-    if disk_full(exc):
-        raise StoreFull(where, need) from None
-
-
-class StoreFull(PipelineError):
-    """The store's disk is full: one line, exit 2.  The free space is measured when the message
-    is shown, after the writer deleted its temp file: what the user can count on."""
-
-    def __init__(self, where: Path, need: int | None):
-        super().__init__(where, need)
-        self.where, self.need = Path(where), need
-
-    def __str__(self) -> str:
-        free, device = _free_space(self.where)
-        wanted = f", need about {self.need}" if self.need else ""
-        return f"store full: {free} bytes free on {device}{wanted}"
-
-
-def _free_space(where: Path) -> tuple[int, str]:
-    """(bytes free to this user, 'mountpoint (device)') of the filesystem holding `where`."""
-    where = Path(where)
-    while not where.exists() and where != where.parent:
-        where = where.parent
-    try:
-        st = os.statvfs(where)
-        free = st.f_bavail * st.f_frsize
-    except OSError:
-        free = 0
-    device, mount, best = "?", str(where), -1
-    with contextlib.suppress(OSError):
-        real = os.path.realpath(where)
-        for line in Path("/proc/mounts").read_text().splitlines():
-            parts = line.split()
-            if len(parts) < 2:
-                continue
-            point = parts[1].replace("\\040", " ")
-            inside = real == point or real.startswith(point.rstrip("/") + "/")
-            if inside and len(point) > best:
-                device, mount, best = parts[0], point, len(point)
-    return free, f"{mount} ({device})" if device != "?" else mount
 
 
 def safe_name(instance: str) -> str:

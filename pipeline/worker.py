@@ -244,7 +244,7 @@ def execute(task: dict) -> dict:
                 writer.abort()
             if isinstance(exc, KeyboardInterrupt):
                 raise
-            from pipeline.store import StoreFull, disk_full
+            from pipeline.space import StoreFull, disk_full
             if not isinstance(exc, PipelineError) and disk_full(exc):  # the node's own files
                 exc = StoreFull(store.root, None)
             # errors meant for the user (bad input, a missing device): one line, no traceback

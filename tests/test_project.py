@@ -42,7 +42,7 @@ def test_profiles_load(profile):
     ("collection_trajectory.n_points=-3", ">= 1"),
     ("m2m.pretrain.steps=-5", ">= 1"),
     ("m2m.finetune.batch_size=0", ">= 1"),
-    ("m2m.pretrain.lr=-1.0", "> 0"),
+    ("m2m.pretrain.lr=-1.0", ">= 0"),
     ("m2m.pretrain.steps=1000000000000000000000000", "<= 10000000"),
     ("force.steps=-1", ">= 1"),
     ("render.spp=-4", "one of 1, 4, 9, 16, 25, 36, 49, 64"),

@@ -366,7 +366,8 @@ FULL_SCRIPT = """
 import errno, sys
 import numpy as np
 from pipeline import artifact
-from pipeline.store import Store, StoreFull
+from pipeline.space import StoreFull
+from pipeline.store import Store
 budget = [int(sys.argv[2])]
 real = artifact._TempFile._write
 
