@@ -147,9 +147,10 @@ def test_a_camera_lost_at_the_end_of_a_contact_does_not_commit_it(run_capture, b
     data, _ = baseline
     msg, staged, rows = _interrupted(run_capture, tmp_path, r"^camera 0: no frame for 10 reads after 25 samples "
                                                             r"\(end of contact 0, which is captured again\)$",
-                                     camera={"faults": {"disconnect_after": 23}})
+                                     camera={"faults": {"disconnect_after": 23}},
+                                     netft={"timeout_s": 5.0})    # the camera's error, not a slow F/T's
     assert rows == 0 and len(staged["raw"]) == 0
-    resumed, final = run_capture(tmp_path)
+    resumed, final = run_capture(tmp_path, netft={"timeout_s": 5.0})
     _same(resumed, data)
     assert resumed["camera_valid"].all() and final["attrs"]["sessions"] == 2
 
