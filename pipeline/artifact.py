@@ -6,6 +6,8 @@ in chunks, so a node making thousands of frames never holds them all.
 """
 from __future__ import annotations
 
+import errno
+import io
 import json
 import os
 import threading
@@ -85,13 +87,52 @@ def _overlapped(write, digest, nbytes: int) -> None:
         raise failed[0]
 
 
+class _TempFile(io.FileIO):
+    """The temp file HDF5 writes an artifact to.  A write that finds the disk full is
+    remembered, and it and every later write are discarded: HDF5 never sees the failure, since
+    after one it can neither flush nor close the file (and crashes the process as it exits).
+    The writer then raises StoreFull and deletes the file."""
+
+    _write = io.FileIO.write
+
+    def __init__(self, path: Path):
+        super().__init__(path, "w+b")
+        self.full: OSError | None = None
+        self.size = 0           # the furthest byte written: the size the artifact reached
+
+    def write(self, data) -> int:
+        view = memoryview(data).cast("B")
+        start = self.tell()
+        if self.full is None:
+            try:
+                done = 0
+                while done < len(view):
+                    done += self._write(view[done:])
+            except OSError as exc:
+                if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+                    raise
+                self.full = exc
+            else:
+                self.size = max(self.size, start + len(view))
+                return len(view)
+        self.size = max(self.size, start + len(view))
+        self.seek(start + len(view))
+        return len(view)
+
+
 class ArtifactWriter:
     """Collects datasets (whole or appended) and attributes; commit() publishes atomically."""
 
     def __init__(self, store, key: str, tmp: Path, provenance: dict[str, Any]):
         self.store, self.key, self.tmp = store, key, tmp
         self.provenance = dict(provenance)
-        self.file = h5py.File(tmp, "w")
+        self._raw = _TempFile(tmp)
+        try:
+            self.file = h5py.File(self._raw, "w")
+        except BaseException:
+            self._raw.close()
+            tmp.unlink(missing_ok=True)
+            raise
         self.digest = ContentDigest()
         self.attrs: dict[str, Any] = {}
         self.metrics: dict[str, float] = {}
@@ -116,6 +157,7 @@ class ArtifactWriter:
         _overlapped(write, lambda: self.digest.update_whole(name, arr),
                     0 if arr.dtype.kind == "O" else arr.nbytes)
         self._whole.add(name)
+        self._check_space()
 
     def append(self, name: str, chunk: Any) -> None:
         if name in self._whole:
@@ -141,6 +183,12 @@ class ArtifactWriter:
         # hashed before returning: the caller may refill the same buffer for the next chunk
         _overlapped(write, lambda: self.digest.update(name, arr, dtype=arr.dtype.str, shape_tail=arr.shape[1:]),
                     arr.nbytes)
+        self._check_space()
+
+    def _check_space(self) -> None:
+        if self._raw.full is not None:
+            from pipeline.space import StoreFull
+            raise StoreFull(self.tmp.parent, self._raw.size)
 
     def set_attrs(self, attrs: Mapping[str, Any]) -> None:
         for k, v in attrs.items():
@@ -152,7 +200,9 @@ class ArtifactWriter:
             else:
                 self._json_attrs.discard(k)
 
-    def commit(self) -> dict:
+    def commit(self, durable: bool = False) -> dict:
+        """Publish the artifact; `durable`: its folder's entry is fsync'd too, so that what the
+        caller deletes next (a capture's staging file) is never the only copy after a crash."""
         for name in self._streams:  # an empty stream is still a dataset
             if name not in self.digest._datasets:
                 ds = self._streams[name]
@@ -170,14 +220,17 @@ class ArtifactWriter:
         self.file.attrs[PROVENANCE_ATTR] = json.dumps(prov, sort_keys=True)
         self.file.flush()
         self.file.close()
+        self._raw.close()
+        self._check_space()
         record = {k: prov.get(k) for k in ("key", "digest", "node", "instance", "created",
                                              "seconds", "metrics", "inputs")}
-        return self.store._publish(self.key, self.tmp, record)
+        return self.store._publish(self.key, self.tmp, record, durable=durable)
 
     def abort(self) -> None:
         try:
             self.file.close()
         finally:
+            self._raw.close()
             self.tmp.unlink(missing_ok=True)
 
 
@@ -320,18 +373,32 @@ def content_digest(f: h5py.File) -> str:
 
 
 def verify_file(path: Path) -> tuple[bool, str]:
-    """(ok, message): re-digest the content and compare with the stored digest."""
+    """(ok, message): the file carries the key in its name, and its content re-digests to
+    the digest it carries."""
+    ok, message, _ = verify_content(path)
+    return ok, message
+
+
+def verify_content(path: Path) -> tuple[bool, str, str]:
+    """verify_file's (ok, message) and the content digest the file carries ("" if none).
+
+    An artifact's own key is checked first: a file copied or moved over another key's path
+    carries a digest that matches its content, so only its key tells it does not belong."""
+    path = Path(path)
     try:
         with h5py.File(path, "r") as f:
-            stored = _provenance(f).get("digest", "")
+            prov = _provenance(f)
+            stored = prov.get("digest", "")
             if not stored:
-                return False, "no content digest (incomplete artifact)"
+                return False, "no content digest (incomplete artifact)", ""
+            if prov.get("key") != path.stem:
+                return False, f"holds artifact {prov.get('key')}, not {path.stem} (copied or moved over it)", stored
             actual = content_digest(f)
     except Exception as exc:  # h5py raises OSError/KeyError/RuntimeError on damaged files
-        return False, f"unreadable: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
+        return False, f"unreadable: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}", ""
     if actual != stored:
-        return False, f"content digest {actual[:12]} != recorded {stored[:12]}"
-    return True, "ok"
+        return False, f"content digest {actual[:12]} != recorded {stored[:12]}", stored
+    return True, "ok", stored
 
 
 def read_record(path: Path) -> dict:

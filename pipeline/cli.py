@@ -102,6 +102,8 @@ class Context:
         from pipeline.store import Store
         self.args = args
         self.project = find_project()
+        if args.store is not None and not args.store.strip():
+            raise PipelineError("--store is empty: name a store directory (default: artifacts/)")
         named = args.store or os.environ.get("PIPELINE_STORE")
         self.store = Store(named or self.project.store_dir)
         if self.store.root.exists() and not self.store.root.is_dir():
@@ -115,10 +117,12 @@ class Context:
         from pipeline.scheduler import Scheduler
         # verbs without --profile/-p (dvc) see the default profile
         params = P.load(self.project.params_file, getattr(self.args, "profile", None),
-                        getattr(self.args, "param", []), self.project.profiles_dir)
+                        getattr(self.args, "param", []), self.project.profiles_dir,
+                        self.project.ranges_file)
         graph = self.project.load_graph()
         roots = [self.project.root, *self.project.source_roots]
-        return Scheduler(graph, params, self.store, list(dict.fromkeys(str(r) for r in roots)))
+        return Scheduler(graph, params, self.store, list(dict.fromkeys(str(r) for r in roots)),
+                         node_context=self.project.node_context)
 
 
 def _print_json(obj) -> None:
@@ -244,10 +248,9 @@ def _resolve(ctx: Context, what: str) -> dict:
 
 
 def cmd_show(ctx: Context) -> int:
-    from pipeline.artifact import Artifact
     rec = _resolve(ctx, ctx.args.what)
     try:
-        with Artifact(ctx.store.path(rec["key"])) as a:
+        with ctx.store.open(rec["key"], rec.get("instance") or rec["key"]) as a:
             info = {"name": rec.get("instance"), "key": rec["key"], "path": str(a.path),
                     "datasets": {n: {"shape": list(a[n].shape), "dtype": str(a[n].dtype)} for n in a},
                     "attrs": a.attrs, "provenance": a.provenance}
@@ -284,22 +287,27 @@ def cmd_verify(ctx: Context) -> int:
         from tqdm import tqdm
         bar = lambda it: tqdm(it, unit="artifact", file=sys.stderr, leave=False)  # noqa: E731
     bad = ctx.store.verify(bar)
-    for key, _ in bad:  # the next run re-checks these from content, then recomputes them
-        (ctx.store.index / f"{key}.json").unlink(missing_ok=True)
+    for what, _ in bad:  # the next run rebuilds these records from content (and recomputes
+        # corrupt artifacts); damaged refs are rewritten by the next run, run logs are the user's
+        if "/" not in what:
+            (ctx.store.index / f"{what}.json").unlink(missing_ok=True)
+        elif what.startswith("index/"):
+            (ctx.store.root / what).unlink(missing_ok=True)
     n = len(ctx.store.object_paths())
     if ctx.args.json:
-        _print_json({"checked": n, "corrupt": [{"key": k, "problem": m} for k, m in bad]})
+        _print_json({"checked": n, "corrupt": [{"file" if "/" in w else "key": w, "problem": m}
+                                               for w, m in bad]})
     else:
-        for k, m in bad:
-            print(f"corrupt {k}: {m}")
-        print(f"{n} artifacts checked, {len(bad)} corrupt")
+        for w, m in bad:
+            print(f"corrupt {w}: {m}")
+        print(f"{n} artifacts checked (and their records, refs and run logs), {len(bad)} corrupt")
     return 1 if bad else 0
 
 
 def cmd_gc(ctx: Context) -> int:
     sched = ctx.scheduler()
-    plan = sched.plan()
-    keep = {p.key for p in plan if p.record is not None}
+    plan = sched.plan(trust=True)   # judges nothing: a damaged upstream keeps its dependents' keys
+    keep = {p.key for p in plan if p.key is not None}
     removed = ctx.store.gc(keep, dry_run=ctx.args.dry_run, keep_runs=ctx.args.keep_runs)
     verb = "would remove" if ctx.args.dry_run else "removed"
     for k in removed:
@@ -400,6 +408,10 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
     except OSError as exc:  # the store or an output folder: read-only, full, vanished
+        from pipeline.space import StoreFull, disk_full
+        if disk_full(exc):
+            print(f"pipeline: error: {StoreFull(Path(exc.filename or '.'), None)}", file=sys.stderr)
+            return 2
         what = f" {exc.filename}" if exc.filename else ""
         print(f"pipeline: error: cannot use{what}: {exc.strerror or exc}", file=sys.stderr)
         return 2

@@ -20,6 +20,8 @@ class Project:
     profiles_dir: Path
     store_dir: Path
     source_roots: list[Path]
+    ranges_file: Path | None = None   # the params' allowed values (pipeline.ranges)
+    node_context: str | None = None   # "module:function", a context manager every node runs in
 
     def load_graph(self) -> Graph:
         module, _, attr = self.graph_ref.partition(":")
@@ -58,5 +60,7 @@ def find_project(start: Path | None = None) -> Project:
             profiles_dir=d / conf.get("profiles", "params"),
             store_dir=d / conf.get("store", "artifacts"),
             source_roots=[d / r for r in conf.get("source_roots", ["."])],
+            ranges_file=d / conf["ranges"] if conf.get("ranges") else None,
+            node_context=conf.get("node_context") or None,
         )
     raise PipelineError(f"no pyproject.toml with a [tool.pipeline] table in {here} or above")

@@ -8,6 +8,10 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import os
+import signal
+import sys
+import threading
+import time
 from typing import Callable
 
 from pipeline.errors import PipelineError
@@ -51,13 +55,45 @@ def _limit_threads(n: int) -> None:
         os.environ.setdefault(var, str(n))
 
 
+PARENT_POLL_S = 1.0
+
+
+def _init_worker(threads: int, parent: int) -> None:
+    _limit_threads(threads)
+    _exit_with_parent(parent)
+
+
+def _exit_with_parent(parent: int) -> None:
+    """A worker whose parent was killed (SIGKILL, the OOM killer) would compute on, orphaned,
+    holding its memory: it keeps its own end of the task queue's pipe open, so it never reads
+    the parent's end closing.  Linux ends it with its parent (PR_SET_PDEATHSIG); elsewhere, and
+    should that fail, a thread watching the parent ends it within PARENT_POLL_S."""
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)       # 1: PR_SET_PDEATHSIG
+        except (OSError, AttributeError):
+            pass
+    if os.getppid() != parent:          # died before the line above took effect
+        os._exit(1)
+    threading.Thread(target=_watch_parent, args=(parent,), name="watch-parent", daemon=True).start()
+
+
+def _watch_parent(parent: int) -> None:
+    while os.getppid() == parent:
+        time.sleep(PARENT_POLL_S)
+    os._exit(1)
+
+
 class ProcessExecutor(InlineExecutor):
     name = "process"
 
     def __init__(self, jobs: int):
         import multiprocessing as mp
         self.pool = cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
-                                           initializer=_limit_threads, initargs=(worker_threads(jobs),))
+                                           initializer=_init_worker,
+                                           initargs=(worker_threads(jobs), os.getpid()))
 
     def submit(self, fn, task):
         return self.pool.submit(fn, task)

@@ -98,15 +98,18 @@ def instance_name(node: str, bindings) -> str:
 
 
 def parse_selector(text: str) -> tuple[str, dict[str, str] | None]:
-    """'render[sensor=a, x=1]' -> ('render', {'sensor': 'a', 'x': '1'}); '[*]' -> {}."""
+    """'render[sensor=a, x=1]' -> ('render', {'sensor': 'a', 'x': '1'}); '[*]' -> {}; '[]' is refused."""
     m = _REF.match(text.strip().replace(" ", ""))
     if not m:
         raise PipelineError(f"malformed target or reference {text!r}: expected NODE or NODE[var=value,...]")
     sel = m.group("sel")
     if sel is None:
         return m.group("node"), None
-    if sel in ("*", ""):
+    if sel == "*":
         return m.group("node"), {}
+    if not sel:     # "render[]" is a slip, not "every instance" (that is "render[*]")
+        raise PipelineError(f"malformed target or reference {text!r}: empty brackets; "
+                            f"use {m.group('node')} or {m.group('node')}[*] for every instance")
     out = {}
     for part in sel.split(","):
         k, eq, v = part.partition("=")

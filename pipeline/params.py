@@ -32,8 +32,44 @@ Loader.add_implicit_resolver(
     list("-+0123456789."))
 
 
-def safe_load(text: str):
-    return yaml.load(text, Loader=Loader)  # noqa: S506 - Loader is a SafeLoader
+MAX_NODES = 200_000   # values a params file may expand to: aliases beyond that are a bomb
+
+
+def safe_load(text: str, what: str = "YAML"):
+    """The YAML's data, refused when its aliases expand to more than MAX_NODES values (a
+    "billion laughs" file would otherwise take forever and all memory in what reads it)."""
+    loader = Loader(text)
+    try:
+        node = loader.get_single_node()
+        if node is not None:
+            _bounded(node, what)
+            return loader.construct_document(node)
+        return None
+    finally:
+        loader.dispose()
+
+
+def _bounded(root, what: str) -> None:
+    """Count the values the node graph expands to, each shared node's size computed once,
+    so that counting stays linear in the file however far its aliases expand."""
+    sizes: dict[int, int | None] = {}      # None: being counted (a node inside itself counts 1)
+    stack: list = [(root, None)]
+    while stack:
+        node, kids = stack.pop()
+        if kids is None:
+            if id(node) in sizes:
+                continue
+            kids = ([c for kv in node.value for c in kv] if isinstance(node, yaml.MappingNode)
+                    else node.value if isinstance(node, yaml.SequenceNode) else ())
+            sizes[id(node)] = None
+            stack.append((node, kids))
+            stack += [(c, None) for c in kids
+                      if not isinstance(c, yaml.ScalarNode) and id(c) not in sizes]
+            continue
+        sizes[id(node)] = total = 1 + sum(sizes.get(id(c)) or 1 for c in kids)
+        if total > MAX_NODES:
+            raise PipelineError(f"{what}: its aliases expand to more than {MAX_NODES} values "
+                                "(an alias bomb?); write the values out, or use fewer aliases")
 
 
 def _load_yaml(path: Path) -> tuple[Any, dict[str, int]]:
@@ -44,14 +80,14 @@ def _load_yaml(path: Path) -> tuple[Any, dict[str, int]]:
         raise PipelineError(f"cannot read params file {path}: {exc.strerror}") from None
     except UnicodeDecodeError as exc:
         raise PipelineError(f"params file {path} is not UTF-8 text (byte {exc.start})") from None
+    loader = Loader(text)
     try:
-        node = yaml.compose(text, Loader=Loader)
-        data = safe_load(text)
+        node = loader.get_single_node()
+        if node is not None:
+            _bounded(node, f"params file {path}")
     except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"{path}:{mark.line + 1}" if mark else str(path)
-        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise PipelineError(f"malformed YAML in {where}: {problem}") from None
+        loader.dispose()
+        raise _malformed(exc, path) from None
     lines: dict[str, int] = {}
 
     def walk(n, prefix):
@@ -65,14 +101,26 @@ def _load_yaml(path: Path) -> tuple[Any, dict[str, int]]:
                 walk(v, key)
 
     try:
-        walk(node, "")
+        walk(node, "")    # before constructing: merge keys ("<<") are flattened in place then
+        data = loader.construct_document(node) if node is not None else None
     except RecursionError:
         raise PipelineError(f"params file {path}: a YAML alias contains itself (recursive anchor)") from None
+    except yaml.YAMLError as exc:
+        raise _malformed(exc, path) from None
+    finally:
+        loader.dispose()
     if data is None:
         data = {}
     if not isinstance(data, dict):
         raise PipelineError(f"params file {path} must hold a mapping at the top level")
     return data, lines
+
+
+def _malformed(exc: yaml.YAMLError, path: Path) -> PipelineError:
+    mark = getattr(exc, "problem_mark", None)
+    where = f"{path}:{mark.line + 1}" if mark else str(path)
+    problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+    return PipelineError(f"malformed YAML in {where}: {problem}")
 
 
 def _plain_yaml(v: Any) -> bool:
@@ -153,9 +201,11 @@ def _inherited(root: dict, key: str) -> Any:
         return _MISSING
 
 
-def _merge(schema: dict, base: dict, overlay: dict, prefix: str, where_of, root: dict | None = None) -> None:
+def _merge(schema: dict, base: dict, overlay: dict, prefix: str, where_of, root: dict | None = None,
+           origins: dict | None = None) -> None:
     """Overlay values onto base, each checked against the type it has there; a key an entry
-    inherits through `extends` may be set on the entry itself."""
+    inherits through `extends` may be set on the entry itself.  `origins` records where each
+    value came from."""
     for k, v in overlay.items():
         key = f"{prefix}.{k}" if prefix else str(k)
         where = where_of(key)
@@ -167,13 +217,16 @@ def _merge(schema: dict, base: dict, overlay: dict, prefix: str, where_of, root:
                 raise _unknown(key, schema, where)
             if isinstance(inherited, dict) and isinstance(v, dict):
                 base[k] = {}
-                _merge(schema, base[k], v, key, where_of, root)
-            else:
-                base[k] = _check_value(key, inherited, v, where)
+                _merge(schema, base[k], v, key, where_of, root, origins)
+                continue
+            base[k] = _check_value(key, inherited, v, where)
         elif isinstance(base[k], dict) and isinstance(v, dict):
-            _merge(schema, base[k], v, key, where_of, root)
+            _merge(schema, base[k], v, key, where_of, root, origins)
+            continue
         else:
             base[k] = _check_value(key, base[k], v, where)
+        if origins is not None:
+            origins[key] = where
 
 
 def get(params: dict, dotted: str) -> Any:
@@ -190,18 +243,22 @@ def parse_override(text: str) -> tuple[str, Any]:
     if not sep or not _KEY.match(key):
         raise PipelineError(f"malformed override {text!r}: expected KEY=VALUE with a dotted KEY")
     try:
-        value = safe_load(raw) if raw.strip() else ""
+        value = safe_load(raw, f"override {text!r}") if raw.strip() else ""
     except yaml.YAMLError:
         raise PipelineError(f"malformed value in override {text!r}: not valid YAML") from None
     return key, value
 
 
 def load(base_file: Path, profile: str | None = None, overrides: list[str] = (),
-         profiles_dir: Path | None = None) -> dict:
-    """params.yaml, then params/<profile>.yaml, then -p KEY=VALUE overrides, all validated;
-    then every `extends` resolved (pipeline.extends)."""
-    schema, _ = _load_yaml(base_file)
+         profiles_dir: Path | None = None, ranges_file: Path | None = None) -> dict:
+    """params.yaml, then params/<profile>.yaml, then -p KEY=VALUE overrides, all validated:
+    types against params.yaml; then every `extends` resolved (pipeline.extends); then values
+    against the ranges file when there is one."""
+    schema, base_lines = _load_yaml(base_file)
     params = copy.deepcopy(schema)
+    origins: dict[str, str] = {}    # dotted key -> the profile line or -p that set it
+    if profile is not None and not profile.strip():
+        raise PipelineError("--profile is empty: name a profile (default, or a file of params/)")
     if profile and profile != "default":
         pdir = profiles_dir or base_file.parent / "params"
         pfile = pdir / f"{profile}.yaml"
@@ -209,7 +266,7 @@ def load(base_file: Path, profile: str | None = None, overrides: list[str] = (),
             known = sorted(p.stem for p in pdir.glob("*.yaml")) if pdir.is_dir() else []
             raise PipelineError(f"unknown profile '{profile}' (known: {', '.join(['default'] + known)})")
         overlay, lines = _load_yaml(pfile)
-        _merge(schema, params, overlay, "", lambda k: f"{pfile}:{lines.get(k, '?')}", params)
+        _merge(schema, params, overlay, "", lambda k: f"{pfile}:{lines.get(k, '?')}", params, origins)
     for text in overrides:
         key, value = parse_override(text)
         parent, _, leaf = key.rpartition(".")
@@ -219,5 +276,21 @@ def load(base_file: Path, profile: str | None = None, overrides: list[str] = (),
             holder = None
         if not isinstance(holder, dict):
             raise _unknown(key, schema, f"-p {text}")
-        _merge(schema, holder, {leaf: value}, parent, lambda k: f"-p {text}", params)
-    return resolve_extends(params)
+        _merge(schema, holder, {leaf: value}, parent, lambda k: f"-p {text}", params, origins)
+    params = resolve_extends(params)
+    if ranges_file is not None:
+        from pipeline import ranges
+
+        def where_of(key: str) -> str:
+            """The nearest setting of the key or of a mapping holding it: a value inherited
+            through `extends` has no line of its own."""
+            k = key
+            while k:
+                if k in origins:
+                    return origins[k]
+                if k in base_lines:
+                    return f"{base_file}:{base_lines[k]}"
+                k = k.rpartition(".")[0]
+            return str(base_file)
+        ranges.check(params, ranges.load(ranges_file, _load_yaml), where_of)
+    return params

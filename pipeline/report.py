@@ -201,7 +201,6 @@ def _file_name(key: str, name: str, used: set[str]) -> str:
 
 
 def _read(planned, store, fig_dir: Path, warnings: list[str]) -> list[NodeView]:
-    from pipeline.artifact import Artifact
     views, used = [], set()
     for p in planned:
         view = NodeView(p.name, p.name.split("[", 1)[0], p.status, p.reason, p.key, p.record)
@@ -210,7 +209,7 @@ def _read(planned, store, fig_dir: Path, warnings: list[str]) -> list[NodeView]:
             continue
         view.node = p.record.get("node") or view.node
         try:
-            with Artifact(store.path(p.key)) as a:
+            with store.open(p.key, p.name) as a:
                 view.provenance = a.provenance
                 tables = a.attrs.get("report_tables")
                 if isinstance(tables, list):

@@ -10,7 +10,9 @@ Layout under the store root:
   corrupt/              artifacts that failed verification, moved aside, never deleted
 
 Writes go to a temp file in objects/, are fsync'd, then os.replace'd into place, so a
-crash leaves no readable partial artifact.
+crash leaves no readable partial artifact.  An artifact carries its own key (provenance
+"key"), checked whenever it is read or verified; records, refs and run logs carry "check",
+the digest of their content, checked whenever they are read.
 """
 from __future__ import annotations
 
@@ -25,14 +27,24 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from pipeline.errors import PipelineError
+from pipeline.hashing import digest_obj
+from pipeline.space import raise_if_full
 
 def _atomic_write_text(path: Path, text: str) -> None:
-    """Whole or absent, never half-written. Not fsync'd: index records and refs are
-    hints rebuilt from the artifacts themselves, which are fsync'd."""
+    """Whole or absent, never half-written; a failed write (a full disk) leaves no temp file.
+    Not fsync'd: index records and refs are hints rebuilt from the artifacts themselves,
+    which are fsync'd."""
     tmp = path.with_name(f".tmp-{path.name}-{os.getpid()}-{uuid.uuid4().hex[:8]}")
-    with open(tmp, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException as exc:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        if isinstance(exc, OSError):
+            raise_if_full(exc, path.parent, need=len(text.encode()))
+        raise
 
 
 def _read_json(path: Path, kind: type = dict):
@@ -45,11 +57,48 @@ def _read_json(path: Path, kind: type = dict):
     return doc if isinstance(doc, kind) else None
 
 
+def sealed(doc: dict) -> dict:
+    """doc with "check", the digest of the rest of its content: an edit of a bookkeeping file
+    (a metric in an index record, a key in a ref) is then found when it is read."""
+    body = {k: v for k, v in doc.items() if k != "check"}
+    return {**body, "check": digest_obj(body)}
+
+
+def seal_state(doc) -> str:
+    """"ok" (its check matches), "unsealed" (a mapping written before records were sealed)
+    or "damaged" (not a mapping, or its check does not match its content)."""
+    if not isinstance(doc, dict):
+        return "damaged"
+    if "check" not in doc:
+        return "unsealed"
+    body = {k: v for k, v in doc.items() if k != "check"}
+    try:
+        return "ok" if doc["check"] == digest_obj(body) else "damaged"
+    except TypeError:
+        return "damaged"
+
+
 _RECORD_FIELDS = {"key": str, "digest": str, "bytes": int, "mtime_ns": int}
 
 
 def _valid_record(rec) -> bool:
-    return isinstance(rec, dict) and all(isinstance(rec.get(f), t) for f, t in _RECORD_FIELDS.items())
+    return (isinstance(rec, dict) and all(isinstance(rec.get(f), t) for f, t in _RECORD_FIELDS.items())
+            and seal_state(rec) == "ok")
+
+
+def list_dir(folder: Path, pattern: str = "*") -> list[Path]:
+    """The entries of a store folder matching `pattern`, sorted; [] when it does not exist.
+    A folder that exists but cannot be read is a one-line error: read as empty, it would make
+    gc delete what its files protect and verify forget every artifact."""
+    import fnmatch
+    try:
+        with os.scandir(folder) as it:
+            names = [e.name for e in it]
+    except FileNotFoundError:
+        return []
+    except OSError as exc:
+        raise PipelineError(f"cannot read {folder}: {exc.strerror or exc} (nothing was changed)") from None
+    return sorted(folder / n for n in names if fnmatch.fnmatchcase(n, pattern))
 
 
 def safe_name(instance: str) -> str:
@@ -81,9 +130,7 @@ class Store:
 
     def object_paths(self) -> list[Path]:
         """Published artifacts (temp files of writers in progress start with '.')."""
-        if not self.objects.is_dir():
-            return []
-        return sorted(p for p in self.objects.glob("*.h5") if not p.name.startswith("."))
+        return [p for p in list_dir(self.objects, "*.h5") if not p.name.startswith(".")]
 
     # -- records ---------------------------------------------------------------------
 
@@ -104,10 +151,11 @@ class Store:
             return None
         rec = _read_json(self._index_path(key))
         if not _valid_record(rec) or rec["key"] != key:
-            rec = None
+            rec = None   # missing, edited or of another key: rebuilt from the artifact
         if rec is not None and (not check or (rec["bytes"] == st.st_size and rec["mtime_ns"] == st.st_mtime_ns)):
             return rec
-        # no index (crash between the two renames) or a changed file: trust only content
+        # no index (crash between the two renames), a damaged record or a changed file:
+        # trust only content
         from pipeline.artifact import read_record, verify_file
         ok, message = verify_file(path)
         if not ok:
@@ -116,11 +164,16 @@ class Store:
         rec = read_record(path)
         rec["path"] = os.path.relpath(path, self.root)
         rec["bytes"], rec["mtime_ns"] = st.st_size, st.st_mtime_ns
-        _atomic_write_text(self._index_path(key), json.dumps(rec, indent=1, sort_keys=True))
-        return rec
+        return self.write_record(rec)
 
-    def write_record(self, rec: dict) -> None:
-        _atomic_write_text(self._index_path(rec["key"]), json.dumps(rec, indent=1, sort_keys=True))
+    def write_record(self, rec: dict) -> dict:
+        rec = sealed(rec)
+        try:
+            _atomic_write_text(self._index_path(rec["key"]), json.dumps(rec, indent=1, sort_keys=True))
+        except FileNotFoundError:   # index/ deleted: rebuilt record by record from the objects
+            self.index.mkdir(parents=True, exist_ok=True)
+            _atomic_write_text(self._index_path(rec["key"]), json.dumps(rec, indent=1, sort_keys=True))
+        return rec
 
     def quarantine(self, key: str, why: str) -> Path | None:
         """Move a damaged artifact aside (kept for inspection) and forget its record."""
@@ -156,9 +209,25 @@ class Store:
                             f"{os.path.relpath(dest, self.root) if dest else 'nowhere'}, "
                             "`pipeline run` recomputes it")
 
+    def open(self, key: str, name: str):
+        """Artifact `key` for reading by `name` (a node instance's input).  A file that carries
+        another key (copied or moved over this one) is refused: moved aside, one line naming
+        it, and the next run recomputes it."""
+        from pipeline.artifact import Artifact
+        art = Artifact(self.path(key))
+        try:
+            found = art.provenance.get("key")
+        except Exception:  # noqa: BLE001 - unreadable provenance: check_damage names it
+            found = None
+        if found != key:
+            art.close()
+            self.check_damage(key, name)   # re-checks the key first: raises
+            raise PipelineError(f"{name}: artifact {key} carries key {found!r}")
+        return art
+
     def records(self) -> list[dict]:
         out = []
-        for p in sorted(self.index.glob("*.json")) if self.index.is_dir() else []:
+        for p in list_dir(self.index, "*.json"):
             rec = _read_json(p)
             if _valid_record(rec) and rec["key"] == p.stem:
                 out.append(rec)
@@ -167,7 +236,7 @@ class Store:
     def find(self, text: str) -> dict:
         """A record by full key, unique key prefix (>= 6 chars), or None."""
         if len(text) >= 6 and all(c in "0123456789abcdef" for c in text):
-            hits = [p.stem for p in self.index.glob(f"{text}*.json")] if self.index.is_dir() else []
+            hits = [p.stem for p in list_dir(self.index, f"{text}*.json")]
             if len(hits) > 1:
                 raise PipelineError(f"key prefix '{text}' is ambiguous ({len(hits)} artifacts)")
             if hits:
@@ -180,13 +249,14 @@ class Store:
     # -- refs and runs ---------------------------------------------------------------
 
     def read_ref(self, instance: str) -> dict | None:
-        return _read_json(self.refs / f"{safe_name(instance)}.json")
+        ref = _read_json(self.refs / f"{safe_name(instance)}.json")
+        return ref if seal_state(ref) in ("ok", "unsealed") else None
 
     def write_ref(self, instance: str, ref: dict, *, changed: bool = False) -> None:
         """Only rewritten when it changes (dvc watches these files); `changed` skips the
         comparison when the caller knows."""
         path = self.refs / f"{safe_name(instance)}.json"
-        text = json.dumps(ref, indent=1, sort_keys=True) + "\n"
+        text = json.dumps(sealed(ref), indent=1, sort_keys=True) + "\n"
         if not changed:
             with contextlib.suppress(OSError):
                 if path.read_text() == text:
@@ -196,7 +266,7 @@ class Store:
     def log_run(self, keys: list[str], meta: dict) -> None:
         stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime())
         path = self.runs / f"{stamp}-{os.getpid()}-{uuid.uuid4().hex[:6]}.json"
-        _atomic_write_text(path, json.dumps({**meta, "keys": sorted(set(keys))}, indent=1))
+        _atomic_write_text(path, json.dumps(sealed({**meta, "keys": sorted(set(keys))}), indent=1))
 
     # -- locking ---------------------------------------------------------------------
 
@@ -217,44 +287,93 @@ class Store:
         from pipeline.artifact import ArtifactWriter
         self.init()
         tmp = self.objects / f".tmp-{key}-{os.getpid()}-{uuid.uuid4().hex[:8]}-{socket.gethostname()}.h5"
-        return ArtifactWriter(self, key, tmp, provenance)
+        # the artifact carries its own key: a file copied over another key's path is found
+        return ArtifactWriter(self, key, tmp, {**provenance, "key": key})
 
-    def _publish(self, key: str, tmp: Path, record: dict) -> dict:
-        fd = os.open(tmp, os.O_RDONLY)
+    def _publish(self, key: str, tmp: Path, record: dict, durable: bool = False) -> dict:
         try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+            _fsync(tmp)     # a filesystem that allocates late may find the disk full only now
+        except OSError as exc:
+            raise_if_full(exc, self.objects, tmp.stat().st_size)
+            raise
         final = self.path(key)
-        # no directory fsync: a rename lost to a power cut leaves the artifact missing
-        # (recomputed), never partial
+        # no directory fsync by default: a rename lost to a power cut leaves the artifact
+        # missing (recomputed), never partial; `durable` fsyncs it, for what cannot be recomputed
         os.replace(tmp, final)
+        if durable:
+            _fsync(self.objects)
         st = final.stat()
         record.update(path=os.path.relpath(final, self.root), bytes=st.st_size,
                       mtime_ns=st.st_mtime_ns, host=socket.gethostname())
-        self.write_record(record)
-        return record
+        return self.write_record(record)
 
     # -- maintenance -----------------------------------------------------------------
 
     def verify(self, progress=None) -> list[tuple[str, str]]:
-        """Re-digest every artifact; return [(key, problem)] for the damaged ones."""
-        from pipeline.artifact import verify_file
-        bad = []
+        """Re-digest every artifact and check every index record, ref and run log.
+
+        Returns [(what, problem)]: `what` is an artifact's key, or the store-relative path of
+        a damaged bookkeeping file (index/<key>.json, refs/<name>.json, runs/<name>.json).
+        Every folder is listed first, so one that cannot be read is a one-line error before
+        anything is judged (read as empty, it would make every artifact look missing)."""
+        from pipeline.artifact import verify_content
         paths = self.object_paths()
-        known = {p.stem for p in self.index.glob("*.json")} if self.index.is_dir() else set()
-        for key in sorted(known - {p.stem for p in paths}):
-            bad.append((key, "file missing"))
+        index, refs, runs = (list_dir(d, "*.json") for d in (self.index, self.refs, self.runs))
+        present = {p.stem for p in paths}
+        bad = [(p.stem, "file missing") for p in index if p.stem not in present]
+        digests = {}
         for p in progress(paths) if progress else paths:
-            ok, message = verify_file(p)
-            if not ok:
+            ok, message, digest = verify_content(p)
+            if ok:
+                digests[p.stem] = digest
+            else:
                 bad.append((p.stem, message))
+        for p in index:
+            if p.stem not in digests:   # missing or corrupt: reported above
+                continue
+            rec = _read_json(p)
+            if not _valid_record(rec) or rec["key"] != p.stem:
+                bad.append((self._rel(p), "damaged record: its content does not match its check"))
+            elif rec["digest"] != digests[p.stem]:
+                bad.append((self._rel(p), f"record's digest {rec['digest'][:12]} != the artifact's "
+                                          f"{digests[p.stem][:12]}"))
+        for p in refs:
+            if self._ref_key(p) is None:
+                bad.append((self._rel(p), "damaged ref: not a ref, or its content does not match its check"))
+        for p in runs:
+            if self._run_keys(p) is None:
+                bad.append((self._rel(p), "damaged run log: not a run log, or its content does not match its check"))
         return bad
 
-    def gc(self, keep: set[str], *, dry_run: bool = False, keep_runs: int = 5) -> list[str]:
-        """Remove artifacts neither a ref nor one of the last `keep_runs` runs uses.
+    def _rel(self, path: Path) -> str:
+        return os.path.relpath(path, self.root)
 
-        Inputs of kept artifacts are kept too. Returns the removed keys.
+    @staticmethod
+    def _ref_key(path: Path) -> str | None:
+        """The key a ref file names, or None when it is damaged (unsealed refs of older stores
+        are read as they are)."""
+        ref = _read_json(path)
+        if seal_state(ref) == "damaged" or not isinstance(ref.get("key"), str):
+            return None
+        return ref["key"]
+
+    @staticmethod
+    def _run_keys(path: Path) -> list[str] | None:
+        doc = _read_json(path)
+        if seal_state(doc) == "damaged":
+            return None
+        keys = doc.get("keys")
+        if not isinstance(keys, list) or not all(isinstance(k, str) for k in keys):
+            return None
+        return keys
+
+    def gc(self, keep: set[str], *, dry_run: bool = False, keep_runs: int = 5) -> list[str]:
+        """Remove artifacts that neither `keep` (the current plan's keys), a ref nor one of the
+        last `keep_runs` runs uses.
+
+        Inputs of kept artifacts are kept too.  Anything gc cannot read (a folder, a ref, a
+        run log, a kept artifact's inputs) stops it before it removes anything: what that
+        file protects is unknown.  Returns the removed keys.
         """
         keep = set(keep)
         if keep_runs < 0:
@@ -263,29 +382,29 @@ class Store:
         def damaged(p: Path) -> PipelineError:  # what it protected is unknown: delete nothing
             return PipelineError(f"gc: {p} is damaged, so what it keeps is unknown; fix or remove it, "
                                  "then run gc again (nothing was removed)")
-        for p in self.refs.glob("*.json") if self.refs.is_dir() else []:
-            key = (_read_json(p) or {}).get("key")
-            if not isinstance(key, str):
+        for p in list_dir(self.refs, "*.json"):
+            key = self._ref_key(p)
+            if key is None:
                 raise damaged(p)
             keep.add(key)
-        runs = sorted(self.runs.glob("*.json")) if self.runs.is_dir() else []
+        runs = list_dir(self.runs, "*.json")
         for p in runs[-keep_runs:] if keep_runs > 0 else []:
-            keys = (_read_json(p) or {}).get("keys")
-            if not isinstance(keys, list) or not all(isinstance(k, str) for k in keys):
+            keys = self._run_keys(p)
+            if keys is None:
                 raise damaged(p)
             keep.update(keys)
+        present = {p.stem for p in self.object_paths()}
         records = {r["key"]: r for r in self.records()}
+        temps = list_dir(self.objects, ".tmp-*")
         stack = list(keep)
-        while stack:  # keep inputs of kept artifacts (a damaged index record is rebuilt)
+        while stack:  # keep inputs of kept artifacts
             key = stack.pop()
-            rec = records.get(key) or self.record(key)
-            for v in (rec or {}).get("inputs", {}).values():
-                for k in (v.values() if isinstance(v, dict) else [v]):
-                    if k not in keep:
-                        keep.add(k)
-                        stack.append(k)
+            for k in self._inputs_of(key, records, key in present):
+                if k not in keep:
+                    keep.add(k)
+                    stack.append(k)
         removed = []
-        for key in sorted(set(records) | {p.stem for p in self.object_paths()}):
+        for key in sorted(set(records) | present):
             if key in keep:
                 continue
             removed.append(key)
@@ -294,12 +413,47 @@ class Store:
                     with contextlib.suppress(FileNotFoundError):
                         p.unlink()
         if not dry_run:
-            for p in self.objects.glob(".tmp-*"):
+            for p in temps:
                 if _abandoned(p):
                     p.unlink(missing_ok=True)
             for p in runs[:-keep_runs] if keep_runs > 0 else runs:
                 p.unlink(missing_ok=True)
         return removed
+
+    def _inputs_of(self, key: str, records: dict, present: bool) -> list[str]:
+        """The input keys of artifact `key`: from its sealed record, else from the provenance
+        the file carries (its content is not re-digested: gc never judges or moves artifacts)."""
+        rec = records.get(key)
+        if rec is None and present:
+            from pipeline.artifact import read_record
+            try:
+                rec = read_record(self.path(key))
+            except Exception as exc:  # noqa: BLE001 - h5py's many ways to fail on a damaged file
+                if not self.path(key).exists():
+                    return []
+                raise PipelineError(f"gc: artifact {key} cannot be read ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__}), "
+                                    "so which inputs it keeps is unknown; `pipeline verify` moves it "
+                                    "aside (nothing was removed)") from None
+        out = []
+        for v in ((rec or {}).get("inputs") or {}).values():
+            out += list(v.values()) if isinstance(v, dict) else [v]
+        return [k for k in out if isinstance(k, str)]
+
+    def known_digest(self, key: str) -> dict | None:
+        """{"key", "digest"} of artifact `key` as its sealed record or its file tells, without
+        re-digesting or moving anything: what gc plans with, so that a damaged artifact still
+        yields the keys of what depends on it.  None when neither can be read."""
+        rec = _read_json(self._index_path(key))
+        if _valid_record(rec) and rec["key"] == key:
+            return rec
+        if not self.path(key).exists():
+            return None
+        from pipeline.artifact import read_record
+        try:
+            rec = read_record(self.path(key))
+        except Exception:  # noqa: BLE001 - unreadable: its digest is unknown
+            return None
+        return rec if rec.get("key") == key and isinstance(rec.get("digest"), str) else None
 
     def checkpoint_path(self, key: str) -> Path:
         """Where the node computing `key` keeps its training checkpoint."""
@@ -313,6 +467,14 @@ class Store:
 
 
 TMP_MAX_AGE_S = 24 * 3600
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def _abandoned(tmp: Path) -> bool:

@@ -11,11 +11,18 @@ A function with a `staging_dir` parameter gets `<store>/staging` (hardware captu
 resumable staging files there).  A function with a `checkpoint` parameter gets a path of its
 own in it, `<store>/staging/<key>.ckpt`: long training saves its progress there and a later
 run of the same key (same code, params and inputs) resumes from it; the worker deletes the
-file once the artifact is committed.  An exception whose class sets `user_error = True` (a
-device that is missing or disconnects) is reported as one line, like a PipelineError.
+file once the artifact is committed.  A function with an `after_publish` parameter gets a
+callable: `after_publish(action)` runs `action()` once the artifact is durably published (its
+file and its folder's entry fsync'd), never when the node or the write fails; hardware capture
+deletes its staging file so, and a kill at any instant leaves the staging file or the artifact.
+An exception whose class sets `user_error = True` (a device that is missing or disconnects) is
+reported as one line, like a PipelineError.  A task's "context" ("module:function", the
+project's [tool.pipeline] node_context) is a context manager every node runs inside, whatever
+executor runs it (the project pins its numeric libraries' threads there).
 """
 from __future__ import annotations
 
+import contextlib
 import importlib
 import inspect
 import math
@@ -202,28 +209,44 @@ def execute(task: dict) -> dict:
                 kwargs["staging_dir"] = str(store.staging)
             if checkpoint:
                 kwargs["checkpoint"] = str(checkpoint)
+            published: list = []
+            if "after_publish" in takes:
+                kwargs["after_publish"] = published.append
             for arg, ref in task["inputs"].items():
                 if isinstance(ref, dict):
-                    kwargs[arg] = {label: Artifact(store.path(k)) for label, k in ref.items()}
-                    opened += kwargs[arg].values()
+                    kwargs[arg] = {}
+                    for label, k in ref.items():
+                        kwargs[arg][label] = store.open(k, f"input '{arg}[{label}]' of {task['instance']}")
+                        opened.append(kwargs[arg][label])
                 else:
-                    kwargs[arg] = Artifact(store.path(ref))
+                    kwargs[arg] = store.open(ref, f"input '{arg}' of {task['instance']}")
                     opened.append(kwargs[arg])
             prov = {k: task[k] for k in ("node", "instance", "key", "code", "params", "grid",
                                          "inputs", "input_digests", "engine")}
             prov["setup_seconds"] = time.time() - t0
             writer = store.writer(key, prov)
-            _consume(func(**kwargs), writer)
-            rec = writer.commit()
+            context = _import(task["context"], task.get("roots", [])) if task.get("context") else None
+            with context() if context else contextlib.nullcontext():
+                _consume(func(**kwargs), writer)
+            rec = writer.commit(durable=bool(published))
             writer = None
             if checkpoint:
                 checkpoint.unlink(missing_ok=True)   # the artifact holds what it was for
+            for action in published:
+                try:
+                    action()
+                except Exception as exc:  # noqa: BLE001 - the artifact is safe; say what is left over
+                    print(f"pipeline: warning: {task['instance']}: after publishing: "
+                          f"{type(exc).__name__}: {exc}", file=sys.stderr)
             return {"record": rec, "computed": True}
         except BaseException as exc:  # report, don't crash the executor
             if writer is not None:
                 writer.abort()
             if isinstance(exc, KeyboardInterrupt):
                 raise
+            from pipeline.space import StoreFull, disk_full
+            if not isinstance(exc, PipelineError) and disk_full(exc):  # the node's own files
+                exc = StoreFull(store.root, None)
             # errors meant for the user (bad input, a missing device): one line, no traceback
             user = isinstance(exc, PipelineError) or getattr(exc, "user_error", False) is True
             if not user:  # a damaged input (intact size and mtime) is the store's, not the node's

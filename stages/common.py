@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import sys
 from typing import Mapping, Sequence
 
 # The contact-sequence schema (DESIGN, "Science contracts"): beside `images` (N,H,W) and
@@ -26,7 +27,8 @@ def attrs_of(art) -> dict:
 
 
 def default_threads() -> int:
-    """Torch threads for training and inference: $GENFORCE_TORCH_THREADS, else 1.
+    """Threads of torch (and, in a pipeline run, of every numeric library: node_threads):
+    $GENFORCE_TORCH_THREADS, else 1.
 
     Fixed, not the machine's core count, so that a node's result does not depend on the
     executor it ran in (torch's float reductions change with the thread count, and a model
@@ -112,6 +114,45 @@ def torch_threads(n: int | None = None):
         yield
     finally:
         torch.set_num_threads(old)
+
+
+# read by the libraries a node imports: OpenMP (torch, scikit-learn), OpenBLAS and MKL (numpy,
+# scipy, OpenCV's own OpenBLAS) and OpenCV's thread pool
+THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OPENCV_FOR_THREADS_NUM")
+
+
+@contextlib.contextmanager
+def node_threads(n: int | None = None):
+    """Run a node with `n` threads (default: :func:`default_threads`) in every numeric library,
+    whichever executor runs it; the pipeline runs each node inside this ([tool.pipeline]
+    node_context in pyproject.toml).
+
+    A float reduction split over threads changes with their count, and each library's own
+    default is the machine's cores, or in a process pool the share its executor sets, so one
+    cache key held two contents: flow_warp's InceptionV3 features (torch, outside a node's
+    torch_threads) differed between the inline and the process executor.  Libraries the node
+    imports read THREAD_VARS; those already loaded are set directly; all is restored after."""
+    n = max(1, int(n or default_threads()))
+    saved = {v: os.environ.get(v) for v in THREAD_VARS}
+    os.environ.update({v: str(n) for v in THREAD_VARS})
+    try:
+        with contextlib.ExitStack() as stack:
+            if "torch" in sys.modules:
+                stack.enter_context(torch_threads(n))
+            cv2 = sys.modules.get("cv2")
+            if cv2 is not None:
+                stack.callback(cv2.setNumThreads, cv2.getNumThreads())
+                cv2.setNumThreads(n)
+            if any(m in sys.modules for m in ("numpy", "scipy", "sklearn", "cv2", "torch")):
+                from threadpoolctl import threadpool_limits
+                stack.enter_context(threadpool_limits(n))
+            yield
+    finally:
+        for var, value in saved.items():
+            if value is None:
+                os.environ.pop(var, None)
+            else:
+                os.environ[var] = value
 
 
 TIMING_KEYS = frozenset({"seconds", "steps_per_s", "samples_per_s", "frames_per_s", "images_per_s"})

@@ -9,6 +9,7 @@ import pytest
 
 from pipeline import params as P
 from pipeline.config import find_project
+from pipeline.errors import PipelineError
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -32,8 +33,97 @@ def test_dvc_yaml_in_sync():
 @pytest.mark.parametrize("profile", ["default", "ci", "paper", "allpairs"])
 def test_profiles_load(profile):
     project = find_project(ROOT)
-    params = P.load(project.params_file, profile, [], project.profiles_dir)
-    project.load_graph().expand(params)  # every reference resolves
+    assert project.ranges_file == ROOT / "params.ranges.yaml"
+    params = P.load(project.params_file, profile, [], project.profiles_dir, project.ranges_file)
+    project.load_graph().expand(params)  # every reference resolves, every value is in its range
+
+
+# values each of which only a node refused, with exit 1 and its traceback, some minutes in
+@pytest.mark.parametrize("override,rule", [
+    ("collection_trajectory.n_points=-3", ">= 1"),
+    ("m2m.pretrain.steps=-5", ">= 1"),
+    ("m2m.finetune.batch_size=0", ">= 1"),
+    ("m2m.pretrain.lr=-1.0", ">= 0"),
+    ("m2m.pretrain.steps=1000000000000000000000000", "<= 10000000"),
+    ("force.steps=-1", ">= 1"),
+    ("render.spp=-4", "one of 1, 4, 9, 16, 25, 36, 49, 64"),
+    ("render.spp=2", "one of 1, 4, 9, 16, 25, 36, 49, 64"),
+    ("sensors.sim.spacing_mm=0.0", "> 0"),
+    ("sensors.gelsight-r8.spacing_mm=0", "> 0"),          # its value came through `<<: *gelsight`
+    ("calibration_trajectory.n_steps=0", ">= 1"),
+    ("patterns.image_size=[1000000, 1000000]", "<= 4096"),
+    ("capture.sensor=gelsight-Z-IX", "skins or sensors"),
+    ("force.compensation=both", "one of normal, axes, contact"),
+    ("segmentation.method=watershed", "one of otsu, grabcut"),
+    ("control.objects.grape.shape=cube", "one of sphere, cylinder, flat"),
+    ("m2m.redraw_match=all", "one of none, spread, shift"),
+    ("force.config.input_size=40", "a multiple of 16"),
+    ("materials.r6.nu=0.5", "< 0.5"),
+])
+def test_a_value_out_of_its_range_is_refused_before_anything_runs(override, rule):
+    project = find_project(ROOT)
+    key = override.split("=")[0]
+    with pytest.raises(PipelineError) as err:
+        P.load(project.params_file, "ci", [override], project.profiles_dir, project.ranges_file)
+    message = str(err.value)
+    assert message.startswith(f"param '{key}") and f"(-p {override}) must " in message
+    assert f"{rule} (range '" in message
+    assert message.endswith(")") and "params.ranges.yaml:" in message
+
+
+def test_the_cli_refuses_an_out_of_range_value_in_one_line_and_builds_nothing(tmp_path):
+    store = tmp_path / "store"
+    p = pipeline("run", "collection_trajectory", "--profile", "ci", "--store", str(store),
+                 "-p", "collection_trajectory.n_points=-3", check=False)
+    assert p.returncode == 2 and p.stdout == "" and "Traceback" not in p.stderr
+    assert p.stderr == ("pipeline: error: param 'collection_trajectory.n_points' = -3 "
+                        "(-p collection_trajectory.n_points=-3) must be >= 1 (range "
+                        f"'collection_trajectory.n_points' in {ROOT / 'params.ranges.yaml'}:16)\n")
+    assert not store.exists()
+
+
+def _ranges() -> dict:
+    from pipeline.params import safe_load
+    return safe_load((ROOT / "params.ranges.yaml").read_text())
+
+
+def _constant(package: str, name: str):
+    """A constant of the first module of `package` that defines it (modules may move)."""
+    import importlib
+    import pkgutil
+    pkg = importlib.import_module(package)
+    for info in pkgutil.iter_modules(pkg.__path__):
+        module = importlib.import_module(f"{package}.{info.name}")
+        if name in vars(module):
+            return vars(module)[name]
+    raise AssertionError(f"no {name} in {package}")
+
+
+def test_the_ranges_option_lists_are_the_nodes_own():
+    """An option a node adds or drops must be added to or dropped from params.ranges.yaml too."""
+    r = _ranges()
+    one_of = lambda key: r[key].get("one_of") or r[key]["items"]["one_of"]   # noqa: E731
+    from stages.capture.devices import DEVICES
+    from stages.catalogue import PAIRINGS, STUDIES
+    from stages.control.objects import SHAPES, TARGET_N
+    from stages.force.model import INPUT_MODES
+    from stages.force.plus import ADDITIONS
+    from stages.markers import mitsuba_backend, segment, unify, uskin
+    from stages.markers.patterns import PATTERNS
+    from stages.sim.indenters import ALL_INDENTERS
+    expected = {
+        "indenters.names": ALL_INDENTERS, "calibration_trajectory.indenter": ALL_INDENTERS,
+        "patterns.names": PATTERNS, "sensors.*.look": unify.LOOKS, "sensors.*.variant": uskin.VARIANTS,
+        "render.backend": ("auto", *mitsuba_backend.VARIANTS), "segmentation.method": segment.METHODS,
+        "segmentation.*.polarity": segment.POLARITIES, "capture.devices": tuple(DEVICES),
+        "control.objects.*.shape": SHAPES, "control.objects.*.fragility": tuple(TARGET_N),
+        "force.config.input_mode": INPUT_MODES, "studies.*.pairs": PAIRINGS,
+        "plus.additions": ADDITIONS,
+    }
+    assert r["sensors.*.studies"]["items"]["key_of"] == "studies"
+    assert set(STUDIES) == set(P.load(ROOT / "params.yaml")["studies"])
+    for key, options in expected.items():
+        assert sorted(one_of(key)) == sorted(options), key
 
 
 def test_allpairs_adds_pairs_and_changes_nothing_else():
@@ -165,6 +255,46 @@ def test_report_of_the_ci_store(ci_store, tmp_path):
         assert f"id='ns-{study}'" in page or f'id="ns-{study}"' in page, study
     figures = list((out / "figures").glob("*.png"))
     assert len(figures) >= 20 and all(f.stat().st_size > 1000 for f in figures[:5])
+
+
+# one instance of each node family whose ci instance takes seconds, not minutes; the rest (the
+# studies, control, the transfers' training and the source nodes) are checked by a whole ci run
+# in each executor, too slow for the suite
+SAME_IN_EVERY_EXECUTOR = [
+    "indenters", "sim_trajectory", "collection_trajectory", "calibration_trajectory", "patterns",
+    "contact_check", "deform[sensor=sim]", "calibrate[sensor=sim]", "render[skin=Array1]",
+    "taxels[skin=uskin-3axis]", "markers[skin=Array1]", "features[skin=Array1]",
+    "flow_warp[source=Array1,target=Array2]", "m2m_sim", "m2m", "m2m_seed[seed=1]",
+    "translate_sim[source=Circle1,target=Diamond3]", "translate[source=gelsight-A-I,target=gelsight-A-II]",
+    "translate_seed[source=gelsight-A-II,target=tactip,seed=1]", "own[skin=gelsight-A-II]",
+    "transfer_seed[seed=1]"]
+LEFT_TO_A_WHOLE_RUN = {"transfer", "hetero_seed", "sim_m2m", "homo", "material", "hetero", "control",
+                       "capture", "capture_calibration", "ingest"}
+
+
+def test_every_node_family_is_compared_across_executors_or_listed_as_left_out():
+    graph = find_project(ROOT).load_graph()
+    compared = {name.partition("[")[0] for name in SAME_IN_EVERY_EXECUTOR}
+    assert compared | LEFT_TO_A_WHOLE_RUN == set(graph.nodes) and not compared & LEFT_TO_A_WHOLE_RUN
+
+
+def test_node_families_make_the_same_content_inline_as_in_a_process_pool(ci_store, tmp_path):
+    """`make run` built the ci store in a pool of spawned processes (each with its share of the
+    cores); recomputed here by the inline executor from the same inputs, each instance has the
+    same content digest.  flow_warp's did not: its features took torch's default threads."""
+    import shutil
+    store, _ = ci_store
+    copy = tmp_path / "store"
+    shutil.copytree(store, copy)
+    built = {n["name"]: n["key"] for n in json.loads(pipeline("status", "--profile", "ci", "--json", "--store",
+                                                                  str(copy), *SAME_IN_EVERY_EXECUTOR).stdout)["nodes"]}
+    before = {name: json.loads((copy / "index" / f"{key}.json").read_text())["digest"] for name, key in built.items()}
+    out = json.loads(pipeline("run", "--profile", "ci", "--store", str(copy), "--force", "--json",
+                              *SAME_IN_EVERY_EXECUTOR).stdout)
+    ran = {n["name"]: n for n in out["nodes"] if n["status"] == "ran"}
+    assert sorted(ran) == sorted(SAME_IN_EVERY_EXECUTOR)
+    after = {name: json.loads((copy / "index" / f"{n['key']}.json").read_text())["digest"] for name, n in ran.items()}
+    assert {n: d for n, d in after.items() if d != before[n]} == {}
 
 
 def test_noop_run_imports_no_science(ci_store):

@@ -274,6 +274,21 @@ class Camera(Device):
         self._last = self._frame(bgr)
         return Sample(t, image=self._last, valid=True)
 
+    def confirm(self) -> None:
+        """After samples that got no fresh frame: read until one comes (not a sample), or raise
+        as read does once `max_consecutive` reads in a row failed.  The rows that repeated the
+        last frame may have been a camera going away: data ending in them is committed only
+        once the camera is known to deliver."""
+        while self._consecutive:
+            ok, bgr = self.cap.read()
+            if ok and bgr is not None:
+                self._consecutive = 0
+                return
+            self.dropped += 1
+            self._consecutive += 1
+            if self._consecutive >= int(self.p["max_consecutive"]):
+                raise self.error(f"no frame for {self._consecutive} reads after {self.samples} samples")
+
     def counts(self) -> dict:
         return {"samples": self.samples, "dropped": self.dropped, "invalid": self.invalid,
                 "skipped": self.skipped}

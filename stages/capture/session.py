@@ -31,8 +31,10 @@ A resumed run must share every parameter that shapes the data (trajectory select
 origin, F/T scale and sign, camera size, emulator physics...); addresses, timeouts, loss limits,
 retries, robot speeds, `rate_hz` and faults (OPERATIONAL) may change, e.g. a longer timeout_s.
 
-When every contact is captured the node yields the staged rows in chunks, deletes the staging
-file and returns the rest; the engine seals it into the store.
+When every contact is captured the node yields the staged rows in chunks and returns the rest;
+the engine seals it into the store, and only once the artifact is durably published does it
+delete the staging file (`after_publish`), so a kill at any instant leaves the staging file or
+the artifact.
 
 Curved pads: the pose map puts first touch at z = 0 at every point, true on a flat pad (and in
 the twin, which counts depth from first touch at each touchdown point as deform does); on a
@@ -52,6 +54,7 @@ devices, emulate, frames, contacts, sessions, seconds, rate_hz_achieved, per-dev
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import os
 import time
@@ -318,6 +321,15 @@ class _Run:
             except DeviceError as exc:
                 raise DeviceError(f"{exc} (trajectory frame {r}, contact {int(t['contact_id'][r])})") from None
         self.goto([point[0], point[1], self.approach])
+        if self.cam is not None:
+            # a contact ending in repeated frames is the start of a disconnect unless the camera
+            # delivers again: committed, it would be kept by the resume, unlike the frames an
+            # uninterrupted capture takes there
+            try:
+                self.cam.confirm()
+            except DeviceError as exc:
+                raise DeviceError(f"{exc} (end of contact {int(t['contact_id'][rows[-1]])}, "
+                                  "which is captured again)") from None
         self.st.commit(self.counts(), time.monotonic() - t0)
 
 
@@ -339,9 +351,11 @@ def capture(*, trajectory: Mapping, devices, robot: Mapping, netft: Mapping, ser
             camera: Mapping, xela: Mapping, slcan: Mapping, sensor: str, rate_hz: float,
             staging_dir: str, emulate: bool, session: Mapping | None = None,
             indenters: Mapping | None = None, spec: Mapping | None = None,
-            materials: Mapping | None = None):
+            materials: Mapping | None = None, after_publish=None):
     """Source node `capture`: see the module docstring.  A generator: it captures (or resumes)
     into the staging file, then yields the staged rows in chunks and returns the rest.
+    after_publish: the engine's; it deletes the staging file once the artifact holding its rows
+    is durably published (called directly, without it, the node deletes the file on return).
 
     session: name (staging file capture-<name>.h5; default the sensor), indenters (names to
     capture; default all the trajectory has), contacts_per_indenter / frame_stride (as the
@@ -406,8 +420,17 @@ def capture(*, trajectory: Mapping, devices, robot: Mapping, netft: Mapping, ser
         final["attrs"] = attrs
     finally:
         st.close()
-    os.remove(path)
+    remove = functools.partial(_remove, path)
+    if after_publish is None:
+        remove()
+    else:
+        after_publish(remove)
     return final
+
+
+def _remove(path: str) -> None:
+    with contextlib.suppress(FileNotFoundError):
+        os.remove(path)
 
 
 def _capture(st, contacts, t, names, devices, device_params, robot_p, s, cam_out, rate_hz, max_depth,
@@ -440,7 +463,8 @@ CALIBRATION_SESSION = {"name": None, "chunk_frames": 64, "tool_change": "auto"}
 def capture_calibration(*, trajectory: Mapping, sensor: str, spec: Mapping, devices, session: Mapping | None,
                         robot: Mapping, netft: Mapping, serial_ft: Mapping, camera: Mapping,
                         xela: Mapping, slcan: Mapping, rate_hz: float, staging_dir: str,
-                        emulate: bool, materials: Mapping, indenters: Mapping | None = None):
+                        emulate: bool, materials: Mapping, indenters: Mapping | None = None,
+                        after_publish=None):
     """Source node `capture_calibration[sensor]`: the material-compensation calibration pressed
     into a real sensor (or its emulated twin) and recorded with an F/T sensor, so that the
     compensation reads this sensor's own force-depth curves (stages.force.compensation) where
@@ -451,8 +475,8 @@ def capture_calibration(*, trajectory: Mapping, sensor: str, spec: Mapping, devi
     sensors catalogue entry), as calibrate presses its twin.  `devices`: the robot and an F/T
     sensor (a camera or skin, if listed, is recorded too but not needed).  `session`
     (CALIBRATION_SESSION): name (staging file capture-<name>.h5; default <sensor>-calibration),
-    chunk_frames, tool_change.  The device parameters, rate_hz, emulate and staging are
-    capture's.
+    chunk_frames, tool_change.  The device parameters, rate_hz, emulate, staging and
+    after_publish are capture's.
 
     Returns capture's arrays (force, depth, normalised_depth = depth / max_depth_mm, phase,
     shift, ...) with attrs: calibration true, indenter (the trajectory's), max_depth_mm and
@@ -489,7 +513,8 @@ def capture_calibration(*, trajectory: Mapping, sensor: str, spec: Mapping, devi
     final = yield from capture(trajectory=t, devices=devices, robot=robot, netft=netft, serial_ft=serial_ft,
                                camera=camera, xela=xela, slcan=slcan, sensor=sensor, rate_hz=rate_hz,
                                staging_dir=staging_dir, emulate=emulate, session=run,
-                               indenters=indenters, spec=spec, materials=materials)
+                               indenters=indenters, spec=spec, materials=materials,
+                               after_publish=after_publish)
     final["attrs"].update({"calibration": True, "indenter": indenter, "max_depth_mm": max_depth,
                            "pad_mm": [float(v) for v in spec["pad_mm"]]})
     return final

@@ -109,3 +109,116 @@ def test_extends_resolves_after_the_profile_and_overrides(tmp_path):
     f.write_text("sensors:\n  a: {extends: nosuch, x: 1}\n  b: {x: 2}\n")
     with pytest.raises(PipelineError, match=r"param 'sensors.a.extends' names 'nosuch', not an entry beside it \(b\)"):
         P.load(f)
+
+
+# -- ranges: the values a param may take, one file, checked before anything runs -------------
+
+RANGED = """\
+steps: 100
+spp: 4
+size: [64, 64]
+seed_ref: null
+sensors:
+  a: &pad {spacing_mm: 0.5, material: soft}
+  b: {<<: *pad, material: hard}
+materials: {soft: {E: 1.0}, hard: {E: 2.0}}
+"""
+
+RANGES = """\
+steps: {ge: 1, le: 1000}
+spp: {one_of: [1, 4, 9]}
+size: {len: 2, items: {ge: 16, le: 512, multiple_of: 8}}
+seed_ref: {ge: 0, whole: true, nullable: true}
+sensors.*.spacing_mm: {gt: 0}
+sensors.*.material: {key_of: materials}
+"""
+
+
+@pytest.fixture
+def ranged(tmp_path):
+    f = tmp_path / "params.yaml"
+    f.write_text(RANGED)
+    (tmp_path / "params").mkdir()
+    (tmp_path / "params" / "ci.yaml").write_text("steps: 10\nsensors:\n  b: {spacing_mm: 0.0}\n")
+    (tmp_path / "ranges.yaml").write_text(RANGES)
+    return f
+
+
+def _load(ranged, profile=None, *overrides):
+    return P.load(ranged, profile, list(overrides), None, ranged.parent / "ranges.yaml")
+
+
+@pytest.mark.parametrize("override,message", [
+    ("steps=-5", "param 'steps' = -5 (-p steps=-5) must be >= 1 (range 'steps' in {r}:1)"),
+    ("steps=100000000000000000000", "param 'steps' = 100000000000000000000 (-p steps=100000000000000000000) "
+                                    "must be <= 1000 (range 'steps' in {r}:1)"),
+    ("spp=2", "param 'spp' = 2 (-p spp=2) must be one of 1, 4, 9 (range 'spp' in {r}:2)"),
+    ("size=[64]", "param 'size' = [64] (-p size=[64]) must have 2 items, has 1 (range 'size' in {r}:3)"),
+    ("size=[64, 100]", "param 'size[1]' = 100 (-p size=[64, 100]) must be a multiple of 8 (range 'size' in {r}:3)"),
+    ("size=[64, 100000]", "param 'size[1]' = 100000 (-p size=[64, 100000]) must be <= 512 (range 'size' in {r}:3)"),
+    ("seed_ref=-1", "param 'seed_ref' = -1 (-p seed_ref=-1) must be >= 0 (range 'seed_ref' in {r}:4)"),
+    ("seed_ref=1.5", "param 'seed_ref' = 1.5 (-p seed_ref=1.5) must be a whole number (range 'seed_ref' in {r}:4)"),
+    ("sensors.a.spacing_mm=0", "param 'sensors.a.spacing_mm' = 0.0 (-p sensors.a.spacing_mm=0) must be > 0 "
+                               "(range 'sensors.*.spacing_mm' in {r}:5)"),
+    ("sensors.a={spacing_mm: -1}", "param 'sensors.a.spacing_mm' = -1.0 (-p sensors.a={spacing_mm: -1}) "
+                                   "must be > 0 (range 'sensors.*.spacing_mm' in {r}:5)"),
+    ("sensors.b.material=rubber", "param 'sensors.b.material' = 'rubber' (-p sensors.b.material=rubber) must "
+                                  "name an entry of materials (range 'sensors.*.material' in {r}:6)"),
+])
+def test_a_value_out_of_range_is_one_line_naming_key_value_rule_and_origin(ranged, override, message):
+    with pytest.raises(PipelineError) as err:
+        _load(ranged, None, override)
+    assert str(err.value) == message.replace("{r}", str(ranged.parent / "ranges.yaml"))
+
+
+def test_a_value_from_a_profile_or_inherited_through_a_merge_key_names_its_line(ranged):
+    with pytest.raises(PipelineError, match=r"^param 'sensors\.b\.spacing_mm' = 0\.0 \(.*/params/ci\.yaml:3\) "
+                                            r"must be > 0 \(range 'sensors\.\*\.spacing_mm' in .*ranges\.yaml:5\)$"):
+        _load(ranged, "ci")
+    # the base value b inherits from a (`<<: *pad`) is named by b's own line
+    ranged.write_text(RANGED.replace("spacing_mm: 0.5", "spacing_mm: -0.5"))
+    with pytest.raises(PipelineError, match=r"^param 'sensors\.a\.spacing_mm' = -0\.5 \(.*params\.yaml:6\)"):
+        _load(ranged)
+    ranged.write_text(RANGED.replace("b: {<<: *pad, material: hard}", "b: {<<: *pad, material: hard}\n  c: {<<: *pad}"))
+    assert _load(ranged, None, "sensors.a.spacing_mm=1.5")["sensors"]["c"]["spacing_mm"] == 0.5
+    with pytest.raises(PipelineError, match=r"^param 'sensors\.c\.spacing_mm' = 0\.0 \(-p sensors\.c\.spacing_mm=0\)"):
+        _load(ranged, None, "sensors.c.spacing_mm=0")
+
+
+def test_values_in_range_pass_and_null_passes_only_where_allowed(ranged):
+    p = _load(ranged, None, "steps=1000", "spp=9", "size=[16, 512]", "seed_ref=3")
+    assert (p["steps"], p["spp"], p["size"], p["seed_ref"]) == (1000, 9, [16, 512], 3)
+    (ranged.parent / "ranges.yaml").write_text(RANGES.replace("seed_ref: {ge: 0, whole: true, nullable: true}",
+                                                              "seed_ref: {ge: 0}"))
+    with pytest.raises(PipelineError, match=r"^param 'seed_ref' = None \(.*params\.yaml:4\) must not be null"):
+        _load(ranged)
+
+
+@pytest.mark.parametrize("text,message", [
+    ("steps: {gte: 1}\n", r"ranges file .*ranges\.yaml:1: 'steps' has unknown rule\(s\) gte \(known: "),
+    ("stpes: {ge: 1}\n", r"ranges file .*ranges\.yaml:1: 'stpes' names no param"),
+    ("sensors.*.spacing: {gt: 0}\n", r"ranges file .*ranges\.yaml:1: 'sensors\.\*\.spacing' names no param"),
+    ("steps: {ge: one}\n", r"ranges file .*ranges\.yaml:1: 'steps' ge must be a number, got 'one'"),
+    ("steps: 5\n", r"ranges file .*ranges\.yaml:1: the rule of 'steps' must be a mapping such as \{gt: 0\}"),
+])
+def test_mistakes_in_the_ranges_file_are_one_line(ranged, text, message):
+    (ranged.parent / "ranges.yaml").write_text(text)
+    with pytest.raises(PipelineError, match=message):
+        _load(ranged)
+
+
+def test_a_yaml_alias_bomb_is_refused_quickly_and_merge_keys_still_work(ranged):
+    """Nine levels of ten aliases expand to 10^9 values; the count is linear in the file."""
+    import time
+    lines = ["a0: &a0 [x, x, x, x, x, x, x, x, x, x]"]
+    lines += [f"a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * 10)}]" for i in range(1, 10)]
+    ranged.write_text(RANGED + "\n".join(lines) + "\n")
+    t0 = time.perf_counter()
+    with pytest.raises(PipelineError, match=rf"^params file {ranged}: its aliases expand to more than "
+                                            r"200000 values \(an alias bomb\?\)"):
+        _load(ranged)
+    with pytest.raises(PipelineError, match=r"^override 'steps=.*': its aliases expand to more than 200000"):
+        P.parse_override("steps=" + "{" + ", ".join(s.replace(": ", ": ", 1) for s in lines) + "}")
+    assert time.perf_counter() - t0 < 5
+    ranged.write_text(RANGED)
+    assert _load(ranged)["sensors"]["b"] == {"spacing_mm": 0.5, "material": "hard"}

@@ -1,6 +1,7 @@
 """Crashes, concurrency, corruption and bad input never damage the store."""
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -13,6 +14,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pipeline.cli import main
+import toyproject
 from toyproject import cli, run_json, statuses
 
 REPO = Path(__file__).resolve().parents[2]
@@ -85,6 +87,44 @@ def test_sigterm_stops_a_process_run_and_its_workers(toy):
     assert statuses(run_json(toy, "frames", "-p", "slow=0.01"))["frames"] == "ran"
 
 
+def _children(pid: int) -> list[int]:
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue
+        if int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out
+
+
+def test_workers_and_their_resource_tracker_exit_when_the_run_is_killed(toy):
+    """SIGKILL leaves no handler to stop the workers: they used to compute on, orphaned, with
+    multiprocessing's resource tracker (about 350 MB each on the ci profile)."""
+    f = toy / "toy" / "nodes.py"
+    f.write_text(f.read_text().replace(
+        "def frames(base, slow):\n",
+        "def frames(base, slow):\n    open('frames.pid', 'w').write(str(os.getpid()))\n"))
+    run_json(toy, "base")
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline", "run", "frames", "--executor", "process",
+                             "--jobs", "2", "-p", "slow=5"], cwd=toy, env=_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+    pid_file = toy / "frames.pid"
+    deadline = time.time() + 60
+    while not (pid_file.exists() and pid_file.read_text()) and time.time() < deadline:
+        time.sleep(0.05)
+    worker = int(pid_file.read_text())
+    helpers = _children(proc.pid)
+    assert worker in helpers and len(helpers) >= 2, helpers      # the worker and the resource tracker
+    proc.kill()
+    proc.wait()
+    deadline = time.time() + 5
+    while any(_running(p) for p in helpers) and time.time() < deadline:
+        time.sleep(0.05)
+    assert not [p for p in helpers if _running(p)], "processes outlive the killed run"
+
+
 def test_concurrent_runs_compute_each_node_once(toy, tmp_path):
     log = tmp_path / "log.txt"
     env = {**_env(), "TOY_LOG": str(log)}
@@ -152,6 +192,24 @@ def test_process_workers_share_the_cores(monkeypatch):
         assert ex.result(ex.submit(_thread_env, {})) == {"OMP_NUM_THREADS": "2", "MKL_NUM_THREADS": "3"}
     finally:
         ex.close()
+
+
+@pytest.mark.parametrize("executor", ["inline", "process"])
+def test_every_node_runs_inside_the_projects_node_context(toy, executor):
+    """[tool.pipeline] node_context names a context manager the worker enters around every
+    node, whichever executor runs it (the project pins its numeric libraries' threads so)."""
+    (toy / "pyproject.toml").write_text(toyproject.PYPROJECT + 'node_context = "toy.ctx:pinned"\n')
+    (toy / "toy" / "ctx.py").write_text(
+        "import contextlib, os\n\n\n@contextlib.contextmanager\ndef pinned():\n"
+        "    os.environ['TOY_CTX'] = '3'\n    try:\n        yield\n    finally:\n"
+        "        del os.environ['TOY_CTX']\n")
+    f = toy / "toy" / "nodes.py"
+    f.write_text(f.read_text().replace(
+        '    return {"x": normalise(np.asarray(base["x"])) * scale}',
+        '    return {"x": normalise(np.asarray(base["x"])) * scale, "ctx": np.array(float(os.environ.get("TOY_CTX", -1)))}'))
+    run_json(toy, "scaled", "--executor", executor, "--jobs", "2")
+    with h5py.File(cli(toy, "get", "scaled").stdout.strip()) as art:
+        assert art["ctx"][()] == 3.0
 
 
 @pytest.mark.parametrize("executor", ["process", "dask"])
@@ -236,6 +294,11 @@ def test_checkpoint_is_a_path_per_key_kept_on_failure_and_deleted_on_commit(toy)
     (["frobnicate"], "argument verb: invalid choice: 'frobnicate'"),
     (["run", "--executor", "dask", "--address", "foo"], "cannot reach Dask scheduler at foo"),
     (["report", "--out", "/proc/nope"], "cannot write report to /proc/nope"),
+    (["run", "shifted[]"], "malformed target or reference 'shifted[]': empty brackets; use shifted or "
+                           "shifted[*] for every instance"),
+    (["run", "--profile", ""], "--profile is empty: name a profile (default, or a file of params/)"),
+    (["run", "--store", ""], "--store is empty: name a store directory (default: artifacts/)"),
+    (["verify", "--store", " "], "--store is empty"),
 ])
 def test_bad_input_one_line_exit_2(toy, args, message):
     p = cli(toy, *args, check=False)
@@ -434,3 +497,97 @@ def test_corrupt_folder_that_is_a_file_is_named(toy):
     assert p.returncode == 2 and p.stderr.count("\n") == 1
     assert f"artifact {key} is damaged (" in p.stderr and "cannot be moved aside" in p.stderr
     assert path.exists()
+
+
+# -- trust: files that are intact but not what their names say ------------------------------
+
+def test_an_artifact_copied_over_another_is_found_by_verify_and_run(toy):
+    """A swapped file is intact (its digest matches its content), so only the key it carries
+    tells: verify names it, and a run recomputes it instead of feeding it downstream."""
+    import shutil
+    first = run_json(toy)
+    keys = {n["name"]: n["key"] for n in first["nodes"]}
+    objects = toy / "artifacts" / "objects"
+    total = json.loads(cli(toy, "metrics", "--json").stdout)["toy/total"]
+    shutil.copyfile(objects / f"{keys['shifted[letter=b]']}.h5", objects / f"{keys['shifted[letter=a]']}.h5")
+    v = cli(toy, "verify", check=False)
+    assert v.returncode == 1 and "1 corrupt" in v.stdout
+    assert f"corrupt {keys['shifted[letter=a]']}: holds artifact {keys['shifted[letter=b]']}" in v.stdout
+    out = run_json(toy)
+    assert statuses(out)["shifted[letter=a]"] == "ran" and statuses(out)["summary"] == "cutoff"
+    assert json.loads(cli(toy, "metrics", "--json").stdout)["toy/total"] == total
+    assert cli(toy, "verify").returncode == 0
+
+
+def test_an_edited_metric_in_an_index_record_is_not_reported(toy):
+    run_json(toy)
+    total = json.loads(cli(toy, "metrics", "--json").stdout)["toy/total"]
+    (rec_path,) = [p for p in (toy / "artifacts" / "index").glob("*.json")
+                   if json.loads(p.read_text())["instance"] == "summary"]
+    rec = json.loads(rec_path.read_text())
+    rec["metrics"]["toy/total"] = -7e-15
+    rec_path.write_text(json.dumps(rec))
+    assert json.loads(cli(toy, "metrics", "--json").stdout)["toy/total"] == total
+    assert json.loads(rec_path.read_text())["metrics"]["toy/total"] == total   # rebuilt
+    rec_path.write_text(json.dumps(rec))
+    v = cli(toy, "verify", check=False)
+    assert v.returncode == 1 and f"corrupt index/{rec_path.name}: damaged record" in v.stdout
+    assert not rec_path.exists() and cli(toy, "verify").returncode == 0
+
+
+def test_metrics_rebuilds_a_deleted_index_from_the_objects(toy):
+    run_json(toy)
+    before = json.loads(cli(toy, "metrics", "--json").stdout)
+    import shutil
+    shutil.rmtree(toy / "artifacts" / "index")
+    assert json.loads(cli(toy, "metrics", "--json").stdout) == before
+    assert len(list((toy / "artifacts" / "index").glob("*.json"))) == 6
+    assert set(statuses(run_json(toy)).values()) == {"cached"}
+
+
+def test_verify_refuses_an_unreadable_objects_folder_and_deletes_nothing(toy, monkeypatch, capsys):
+    run_json(toy)
+    objects = toy / "artifacts" / "objects"
+    index = sorted(p.name for p in (toy / "artifacts" / "index").iterdir())
+    real = os.scandir
+
+    def scandir(path="."):
+        if Path(path).resolve() == objects.resolve():
+            raise PermissionError(13, "Permission denied", str(path))
+        return real(path)
+    monkeypatch.chdir(toy)
+    monkeypatch.setattr(os, "scandir", scandir)
+    assert main(["verify"]) == 2
+    err = capsys.readouterr().err
+    assert err == f"pipeline: error: cannot read {objects}: Permission denied (nothing was changed)\n"
+    monkeypatch.undo()
+    assert sorted(p.name for p in (toy / "artifacts" / "index").iterdir()) == index
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 2 MiB tmpfs (needs the right to mount: root in a container)."""
+    mnt = tmp_path / "disk"
+    mnt.mkdir()
+    p = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(mnt)], capture_output=True)
+    if p.returncode:
+        pytest.skip("cannot mount a tmpfs here (test_store simulates the full disk instead)")
+    yield mnt
+    subprocess.run(["umount", str(mnt)], check=True)
+
+
+def test_a_full_disk_is_one_line_and_damages_nothing(toy, small_disk):
+    """On a real 2 MiB disk: a 4.8 MB artifact fails with one line, exit 2 (it segfaulted, rc 139,
+    after h5py's errors), its temp file is gone, and what the store held is intact."""
+    store = small_disk / "store"
+    first = run_json(toy, "--store", str(store))
+    p = cli(toy, "run", "--store", str(store), "-p", "size=400000", check=False)
+    assert p.returncode == 2 and p.stdout == "" and p.stderr.count("\n") == 1, p.stderr[-3000:]
+    assert p.stderr.startswith(f"pipeline: error: node base: store full: ") and "Traceback" not in p.stderr
+    free, need = (int(v) for v in re.match(r".*store full: (\d+) bytes free on " + re.escape(str(small_disk))
+                                             + r" \(tmpfs\), need about (\d+)$", p.stderr.strip()).groups())
+    assert 0 < free < 2 * 2**20 < need
+    assert not [q for q in (store / "objects").iterdir() if q.name.startswith(".")]
+    assert cli(toy, "verify", "--store", str(store)).returncode == 0
+    assert set(statuses(run_json(toy, "--store", str(store))).values()) == {"cached"}
+    assert len(first["nodes"]) == len(list((store / "objects").glob("*.h5")))

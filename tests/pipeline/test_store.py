@@ -252,3 +252,157 @@ def test_unicode_strings_round_trip(tmp_path):
         assert list(a["names"][()]) == ["bé", "Ω-pad"] and a["label"][()] == "tactip-é"
         assert [list(c) for c in a["names"].iter_chunks(1)] == [["bé"], ["Ω-pad"]]
     assert verify_file(store.path("k")) == (True, "ok")
+
+
+# -- trust: a file belongs to the key in its name; bookkeeping files carry a check -----------
+
+def test_a_file_copied_over_another_keys_path_is_rejected(tmp_path):
+    """Both files are intact, so only the key each carries tells the copy does not belong."""
+    import shutil
+    store = Store(tmp_path).init()
+    write(store, "a", x=np.arange(10, dtype=np.float64))
+    write(store, "b", x=np.arange(10, dtype=np.float64) + 1)
+    shutil.copyfile(store.path("b"), store.path("a"))
+    assert verify_file(store.path("a")) == (False, "holds artifact b, not a (copied or moved over it)")
+    assert store.verify() == [("a", "holds artifact b, not a (copied or moved over it)")]
+    assert store.record("a") is None                  # changed file: content check, moved aside
+    assert not store.path("a").exists() and len(list(store.corrupt.glob("a-*.h5"))) == 1
+
+
+def test_reading_a_file_of_another_key_with_a_matching_record_is_refused(tmp_path):
+    """Size and mtime agree with the record (the fast path passes): opening it as an input
+    still checks the key it carries."""
+    import shutil
+    store = Store(tmp_path).init()
+    rec = write(store, "a", x=np.arange(10, dtype=np.float64))
+    write(store, "b", x=np.arange(10, dtype=np.float64) + 1)
+    shutil.copyfile(store.path("b"), store.path("a"))
+    st = store.path("a").stat()
+    store.write_record({**rec, "bytes": st.st_size, "mtime_ns": st.st_mtime_ns})
+    assert store.record("a") is not None
+    with pytest.raises(PipelineError, match=r"^input 'x' of n: artifact a is corrupt \(holds artifact b, not a "
+                                            r"\(copied or moved over it\)\); moved to corrupt/a-"):
+        store.open("a", "input 'x' of n")
+    with store.open("b", "input 'x' of n") as art:
+        assert np.asarray(art["x"])[0] == 1.0
+
+
+@pytest.mark.parametrize("edit", ["metric", "digest", "bytes"])
+def test_an_edited_index_record_is_rebuilt_from_its_artifact(tmp_path, edit):
+    store = Store(tmp_path).init()
+    w = store.writer("k", {"node": "n", "instance": "n", "inputs": {}})
+    w.put("x", np.arange(3))
+    w.metrics["m/fid"] = 2.5
+    rec = w.commit()
+    path = store.index / "k.json"
+    doc = json.loads(path.read_text())
+    doc.update({"metric": {"metrics": {"m/fid": -7e-15}}, "digest": {"digest": "0" * 64},
+                "bytes": {"bytes": doc["bytes"] + 1}}[edit])
+    path.write_text(json.dumps(doc))
+    assert store.verify() == [("index/k.json", "damaged record: its content does not match its check")]
+    again = store.record("k")
+    assert again["metrics"] == {"m/fid": 2.5} and again["digest"] == rec["digest"]
+    assert json.loads(path.read_text())["metrics"] == {"m/fid": 2.5} and store.verify() == []
+    assert [r["metrics"] for r in store.records()] == [{"m/fid": 2.5}]
+
+
+def test_verify_checks_refs_and_run_logs(tmp_path):
+    store = Store(tmp_path).init()
+    write(store, "a", x=np.arange(3))
+    store.write_ref("n", {"key": "a", "digest": "d"})
+    store.log_run(["a"], {"targets": []})
+    assert store.verify() == []
+    ref = store.refs / "n.json"
+    ref.write_text(ref.read_text().replace('"key": "a"', '"key": "b"'))
+    (run,) = store.runs.glob("*.json")
+    run.write_text(run.read_text().replace('"a"', '"c"'))
+    assert store.verify() == [("refs/n.json", "damaged ref: not a ref, or its content does not match its check"),
+                              (f"runs/{run.name}",
+                               "damaged run log: not a run log, or its content does not match its check")]
+    assert store.read_ref("n") is None                   # status reads it as missing
+    with pytest.raises(PipelineError, match=r"gc: .*refs/n\.json is damaged.*nothing was removed"):
+        store.gc(set())
+    assert store.path("a").exists()
+
+
+@pytest.mark.parametrize("folder", ["objects", "index", "refs", "runs"])
+def test_an_unreadable_store_folder_stops_verify_and_gc(tmp_path, monkeypatch, folder):
+    """Read as empty, an unreadable runs/ or refs/ made gc delete what their files keep, and
+    an unreadable objects/ made verify call every artifact missing."""
+    store = Store(tmp_path).init()
+    write(store, "a", x=np.arange(3))
+    write(store, "b", x=np.arange(4))
+    store.log_run(["a"], {"targets": []})
+    store.write_ref("n", {"key": "b"})
+    real = os.scandir
+
+    def scandir(path="."):
+        if Path(path) == tmp_path / folder:
+            raise PermissionError(13, "Permission denied", str(path))
+        return real(path)
+    monkeypatch.setattr(os, "scandir", scandir)
+    message = rf"^cannot read {tmp_path / folder}: Permission denied \(nothing was changed\)$"
+    with pytest.raises(PipelineError, match=message):
+        store.verify()
+    with pytest.raises(PipelineError, match=message):
+        store.gc(set())
+    monkeypatch.undo()
+    assert sorted(p.name for p in store.index.iterdir()) == ["a.json", "b.json"]
+    assert [p.stem for p in store.object_paths()] == ["a", "b"]
+
+
+def test_gc_keeps_the_inputs_of_a_kept_artifact_whose_record_is_damaged(tmp_path):
+    store = Store(tmp_path).init()
+    write(store, "c", x=np.arange(3))
+    w = store.writer("b", {"node": "n", "instance": "n", "inputs": {"up": "c"}})
+    w.put("x", np.arange(3))
+    w.commit()
+    (store.index / "b.json").write_text("{}")
+    assert store.gc({"b"}) == []
+    assert store.path("c").exists()
+
+
+FULL_SCRIPT = """
+import errno, sys
+import numpy as np
+from pipeline import artifact
+from pipeline.space import StoreFull
+from pipeline.store import Store
+budget = [int(sys.argv[2])]
+real = artifact._TempFile._write
+
+def write(self, view):                    # a disk with `budget` bytes left
+    if len(view) > budget[0]:
+        raise OSError(errno.ENOSPC, "No space left on device")
+    budget[0] -= len(view)
+    return real(self, view)
+store = Store(sys.argv[1]).init()
+w = store.writer("a", {"node": "n", "instance": "n", "inputs": {}})
+w.put("x", np.arange(10))
+w.commit()
+artifact._TempFile._write = write
+w = store.writer("b", {"node": "n", "instance": "n", "inputs": {}})
+rng = np.random.default_rng(0)
+try:
+    for i in range(50):
+        w.append("images", rng.integers(0, 255, (16, 64, 64), dtype=np.uint8))
+    w.commit()
+except StoreFull as exc:
+    w.abort()
+    print(exc)
+"""
+
+
+def test_a_disk_full_while_writing_is_one_error_and_leaves_only_what_was_there(tmp_path):
+    """HDF5 never sees the failed write (after one it can neither flush nor close its file and
+    crashes the process at exit, rc 139): one StoreFull, the temp file deleted, a clean exit."""
+    import subprocess
+    import sys
+    p = subprocess.run([sys.executable, "-c", FULL_SCRIPT, str(tmp_path), str(300_000)], capture_output=True,
+                       text=True, env={**os.environ, "PYTHONPATH": str(Path(__file__).parents[2])}, timeout=120)
+    assert p.returncode == 0 and p.stderr == "", p.stderr[-2000:]
+    import re
+    m = re.fullmatch(r"store full: (\d+) bytes free on (.+), need about (\d+)\n", p.stdout)
+    assert m and int(m.group(3)) > 300_000, p.stdout          # at least what it had reached
+    store = Store(tmp_path)
+    assert [q.name for q in store.objects.iterdir()] == ["a.h5"] and store.verify() == []

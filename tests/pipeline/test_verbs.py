@@ -95,6 +95,30 @@ def test_gc_keeps_current(toy):
     assert statuses(run_json(toy))["base"] == "ran"
 
 
+def test_gc_keeps_the_current_plan_when_an_upstream_is_damaged(toy):
+    """The current params' keys come from the records, not from re-digesting: a damaged
+    `base` (which a run recomputes to the same content) still gives the keys of everything
+    after it, though the refs now name another run's artifacts."""
+    current = {n["name"]: n["key"] for n in run_json(toy)["nodes"]}
+    run_json(toy, "-p", "scale=3.0")              # the refs and the last run name these
+    objects = toy / "artifacts" / "objects"
+    path = objects / f"{current['base']}.h5"
+    import h5py
+    with h5py.File(path, "r") as f:
+        offset = f["x"].id.get_offset()
+    with open(path, "r+b") as fh:              # a flipped bit of its data (and a new mtime)
+        fh.seek(offset)
+        b = fh.read(1)
+        fh.seek(offset)
+        fh.write(bytes([b[0] ^ 0x01]))
+    out = cli(toy, "gc", "--keep-runs", "0").stdout
+    assert "0 artifacts removed" in out, out
+    for name, key in current.items():
+        assert (objects / f"{key}.h5").exists(), name
+    again = statuses(run_json(toy))
+    assert again["base"] == "ran" and again["scaled"] == "cutoff" and again["summary"] == "cached"
+
+
 def test_gc_removes_only_checkpoints_no_planned_key_can_resume(toy):
     """A checkpoint of a key the current plan holds (built or not) stays; those of other keys
     (older params, code since changed), with their .bad and .tmp files, go."""

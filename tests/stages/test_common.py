@@ -42,3 +42,27 @@ def test_torch_device_follows_GENFORCE_DEVICE_and_names_a_bad_one(monkeypatch):
     monkeypatch.setenv("GENFORCE_DEVICE", "meta")
     with pytest.raises(ValueError, match=r"GENFORCE_DEVICE='meta': only cpu and cuda"):
         torch_device()
+
+
+def test_node_threads_pins_every_numeric_library_and_restores_them(monkeypatch):
+    """Inside: torch, OpenCV and the BLAS/OpenMP pools on default_threads() threads, and the
+    variables the libraries a node imports read; after: everything as it was."""
+    import os
+    import cv2
+    import numpy  # noqa: F401 - loads OpenBLAS
+    import torch
+    from threadpoolctl import threadpool_info
+    from stages.common import THREAD_VARS, node_threads
+    monkeypatch.setenv("GENFORCE_TORCH_THREADS", "1")
+    monkeypatch.setenv("OMP_NUM_THREADS", "2")
+    monkeypatch.delenv("OPENCV_FOR_THREADS_NUM", raising=False)
+    cv2.setNumThreads(2)
+    torch.set_num_threads(2)
+    before = {(p["internal_api"], p["filepath"]): p["num_threads"] for p in threadpool_info()}
+    with node_threads():
+        assert [os.environ[v] for v in THREAD_VARS] == ["1"] * len(THREAD_VARS)
+        assert cv2.getNumThreads() == 1 and torch.get_num_threads() == 1
+        assert {p["num_threads"] for p in threadpool_info()} == {1}
+    assert os.environ["OMP_NUM_THREADS"] == "2" and "OPENCV_FOR_THREADS_NUM" not in os.environ
+    assert cv2.getNumThreads() == 2 and torch.get_num_threads() == 2
+    assert {(p["internal_api"], p["filepath"]): p["num_threads"] for p in threadpool_info()} == before

@@ -1,4 +1,5 @@
 """Node `capture` end to end against the loopback emulators: physics, staging, faults, resume."""
+import json
 import os
 
 import numpy as np
@@ -139,6 +140,21 @@ def test_camera_that_stops_delivering_is_an_error(run_capture, tmp_path):
         run_capture(tmp_path, camera={"faults": {"disconnect_after": 30}})
 
 
+def test_a_camera_lost_at_the_end_of_a_contact_does_not_commit_it(run_capture, baseline, tmp_path):
+    """The camera serves 23 frames (the reference and the first contact's first 22 rows) and no
+    more: the first contact would end in two repeated frames marked invalid.  It is not
+    committed; the resume captures it again, so the dataset equals an uninterrupted one."""
+    data, _ = baseline
+    msg, staged, rows = _interrupted(run_capture, tmp_path, r"^camera 0: no frame for 10 reads after 25 samples "
+                                                            r"\(end of contact 0, which is captured again\)$",
+                                     camera={"faults": {"disconnect_after": 23}},
+                                     netft={"timeout_s": 5.0})    # the camera's error, not a slow F/T's
+    assert rows == 0 and len(staged["raw"]) == 0
+    resumed, final = run_capture(tmp_path, netft={"timeout_s": 5.0})
+    _same(resumed, data)
+    assert resumed["camera_valid"].all() and final["attrs"]["sessions"] == 2
+
+
 def test_protective_stop_then_resume(run_capture, baseline, tmp_path):
     data, _ = baseline
     # moves: clearance, approach, 24 frames, lift (27); second contact (another indenter):
@@ -222,3 +238,105 @@ def test_a_staging_file_with_no_contact_yields_to_corrected_parameters(run_captu
     assert len(os.listdir(tmp_path)) == 1
     got, _ = run_capture(tmp_path)
     np.testing.assert_array_equal(got["force"], baseline[0]["force"])
+
+
+# -- sealing through the engine: a kill at any instant keeps the staging file or the artifact --
+
+SEAL_GRAPH = '''\
+from pipeline import Graph
+
+GRAPH = Graph()
+GRAPH.node("indenters", "stages.sim.indenters:indenter_set", params={"names": "names"}, version="1")
+GRAPH.node("trajectory", "stages.sim.trajectory:collection_trajectory",
+           params={k: f"trajectory.{k}" for k in ("indenters", "n_points", "n_directions", "depth_step_mm",
+                                                   "max_depth_mm", "speed_mm_s")}, version="1")
+GRAPH.node("capture", "stages.capture.session:capture",
+           inputs={"trajectory": "trajectory", "indenters": "indenters"},
+           params={k: f"capture.{k}" for k in ("devices", "emulate", "sensor", "rate_hz", "session", "robot",
+                                               "netft", "serial_ft", "camera", "xela", "slcan", "spec",
+                                               "materials")},
+           source=True)
+'''
+
+# SIGKILL this process at one point of publishing the capture (the engine's code runs as is)
+KILL_AT = '''\
+import os, signal, sys
+from pathlib import Path
+point, real = sys.argv[1], (os.replace, os.fsync, os.remove)
+die = lambda: os.kill(os.getpid(), signal.SIGKILL)
+def replace(src, dst, *a, **k):
+    artifact = Path(dst).parent.name == "objects" and str(dst).endswith(".h5")
+    if artifact and point == "before_replace":
+        die()
+    real[0](src, dst, *a, **k)
+def fsync(fd):
+    real[1](fd)
+    if point == "after_folder_fsync" and os.path.isdir(f"/proc/self/fd/{fd}"):
+        die()
+def remove(path, *a, **k):
+    if point == "before_staging_removed" and "capture-" in str(path):
+        die()
+    real[2](path, *a, **k)
+os.replace, os.fsync, os.remove = replace, fsync, remove
+from pipeline.cli import main
+sys.exit(main(["run", "capture"]))
+'''
+
+
+@pytest.fixture(scope="module")
+def seal_project(tmp_path_factory, ci):
+    import yaml
+    from tests.helpers import ROOT
+    root = tmp_path_factory.mktemp("seal")
+    (root / "pyproject.toml").write_text('[tool.pipeline]\ngraph = "sealgraph:GRAPH"\n')
+    (root / "sealgraph.py").write_text(SEAL_GRAPH)
+    params = {"names": ["sphere", "prism"],
+              "trajectory": {"indenters": ["sphere", "prism"], "n_points": 1, "n_directions": 2,
+                             "depth_step_mm": 0.5, "max_depth_mm": 0.5, "speed_mm_s": 20.0},
+              "capture": {**{k: ci["capture"][k] for k in ("robot", "netft", "serial_ft", "camera", "xela", "slcan")},
+                          "devices": ["robot", "netft"], "emulate": True, "sensor": "gelsight-r10", "rate_hz": 0.0,
+                          "session": {"contacts_per_indenter": 0, "frame_stride": 1},
+                          "spec": ci["sensors"]["gelsight-r10"], "materials": ci["materials"]}}
+    (root / "params.yaml").write_text(yaml.safe_dump(params))
+    env = {**os.environ, "PYTHONPATH": f"{root}{os.pathsep}{ROOT}"}
+    env.pop("PIPELINE_STORE", None)
+    assert _pipeline(root, env, "run", "indenters", "trajectory", "--store", "inputs").returncode == 0
+    (key,) = [n["key"] for n in json.loads(_pipeline(root, env, "status", "--json", "capture", "--store",
+                                                     "inputs").stdout)["nodes"] if n["name"] == "capture"]
+    return root, env, key
+
+
+def _pipeline(root, env, *args, code=None):
+    import subprocess
+    import sys
+    cmd = [sys.executable, "-c", code, *args] if code else [sys.executable, "-m", "pipeline", *args]
+    return subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True, timeout=300)
+
+
+@pytest.mark.parametrize("point", ["before_replace", "after_folder_fsync", "before_staging_removed"])
+def test_a_kill_while_sealing_keeps_the_staging_file_or_the_artifact(seal_project, point):
+    """Before: the staging file was deleted as the node returned, before the engine published
+    the artifact, and a kill in that window left the rows only in a temp file gc deletes."""
+    import shutil
+    import h5py
+    root, env, key = seal_project
+    store = root / "artifacts"
+    shutil.rmtree(store, ignore_errors=True)
+    shutil.copytree(root / "inputs", store)            # indenters and trajectory, built once
+    killed = _pipeline(root, env, point, code=KILL_AT)
+    assert killed.returncode == -9, killed.stderr[-2000:]
+    staging = store / "staging" / "capture-gelsight-r10.h5"
+    artifact = store / "objects" / f"{key}.h5"
+    assert artifact.exists() == (point != "before_replace")
+    assert staging.exists()                      # removed only after the durable publish
+    with h5py.File(staging, "r") as f:
+        assert f.attrs["complete"] and int(f.attrs["committed_contacts"]) == 2
+        staged = {k: f[k][()] for k in ("force", "frame", "timestamps/netft")}
+    again = _pipeline(root, env, "run", "capture", "--json")
+    assert again.returncode == 0, again.stderr[-2000:]
+    status = {n["name"]: n["status"] for n in json.loads(again.stdout)["nodes"]}["capture"]
+    assert status == ("ran" if point == "before_replace" else "cached")
+    with h5py.File(artifact, "r") as f:
+        for name, value in staged.items():       # the rows captured before the kill, not new ones
+            np.testing.assert_array_equal(f[name][()], value, err_msg=name)
+    assert staging.exists() == (point != "before_replace")   # a kill after publishing leaves it over
