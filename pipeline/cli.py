@@ -178,8 +178,23 @@ def cmd_run(ctx: Context) -> int:
     return 0
 
 
+def _other_profile(ctx: Context, planned) -> None:
+    """One line when the store's last run used another profile than this command and this
+    profile's results are not all built: the results a user looks for are under that one."""
+    if all(p.record is not None for p in planned):
+        return
+    last = ctx.store.last_run()
+    mine = getattr(ctx.args, "profile", None) or "default"
+    theirs = (last or {}).get("profile") or "default"
+    if last is not None and theirs != mine:
+        flag = "" if theirs == "default" else f"--profile {theirs}"
+        print(f"note: the store's last run used the {theirs} profile, this command the {mine} one; "
+              f"pass {flag or 'no --profile'} to see its results", file=sys.stderr)
+
+
 def cmd_status(ctx: Context) -> int:
     planned = ctx.scheduler().plan(ctx.args.targets)
+    _other_profile(ctx, planned)
     if ctx.args.json:
         _print_json({"nodes": [{"name": p.name, "key": p.key, "status": p.status, "reason": p.reason}
                                for p in planned]})
@@ -342,6 +357,7 @@ def cmd_dvc(ctx: Context) -> int:
 def cmd_metrics(ctx: Context) -> int:
     from pipeline import metrics as M
     planned = ctx.scheduler().plan()
+    _other_profile(ctx, planned)
     stale = [p.name for p in planned if p.record is None]
     if stale:
         print(f"warning: {len(stale)} nodes are not built (e.g. {stale[0]}); "
@@ -376,6 +392,7 @@ def cmd_metrics(ctx: Context) -> int:
 def cmd_report(ctx: Context) -> int:
     from pipeline import report
     planned = ctx.scheduler().plan()
+    _other_profile(ctx, planned)
     out = ctx.args.out or ctx.project.root / "report"
     print(report.write(planned, ctx.store, out, info={"profile": ctx.args.profile or "default"}))
     return 0

@@ -263,6 +263,14 @@ class Store:
                     return
         _atomic_write_text(path, text)
 
+    def last_run(self) -> dict | None:
+        """The newest run log whose content checks out (its meta: targets, profile, params)."""
+        for path in reversed(list_dir(self.runs, "*.json")):
+            doc = _read_json(path)
+            if isinstance(doc, dict) and seal_state(doc) in ("ok", "unsealed"):
+                return doc
+        return None
+
     def log_run(self, keys: list[str], meta: dict) -> None:
         stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime())
         path = self.runs / f"{stamp}-{os.getpid()}-{uuid.uuid4().hex[:6]}.json"

@@ -176,3 +176,19 @@ def test_merged_baseline_keeps_the_worse_value_in_each_metrics_direction():
     cur = {"s/a/r2_fx": 0.7, "s/a/mae_fx": 1.4, "s/a/iou": 0.8, "only/cur": 3.0}
     assert merged_worse(base, cur) == {"only/base": 2.0, "only/cur": 3.0, "s/a/iou": 0.8,
                                        "s/a/mae_fx": 1.4, "s/a/r2_fx": 0.5}
+
+
+def test_report_metrics_and_status_name_the_profile_the_store_was_built_with(toy):
+    """A store built with --profile ci, then looked at with no profile: the verbs say so in one
+    line and name the flag; with the flag, or once the default is built, they say nothing."""
+    (toy / "params").mkdir(exist_ok=True)
+    (toy / "params" / "ci.yaml").write_text("scale: 3.0\n")
+    cli(toy, "run", "--profile", "ci")
+    note = ("note: the store's last run used the ci profile, this command the default one; "
+            "pass --profile ci to see its results")
+    for verb in (["metrics"], ["status"], ["report", "--out", str(toy / "report")]):
+        p = cli(toy, *verb, check=False)
+        assert note in p.stderr.splitlines(), (verb, p.stderr)
+        assert "note:" not in cli(toy, *verb, "--profile", "ci").stderr
+    cli(toy, "run")
+    assert "note:" not in cli(toy, "status").stderr
