@@ -131,7 +131,7 @@ GRAPH.node("m2m", "stages.m2m.fit:finetune",
            description="M2M fine-tuned to the twin sensors with a few location-paired frames each")
 _EVAL = {"eval_indenters": "splits.test_indenters", "val_indenters": "splits.val_indenters",
          "n_eval": "m2m.n_eval"}
-GRAPH.node("translate_sim", "stages.m2m.translate:translate_sequence",
+GRAPH.node("translate_sim", "stages.m2m.translate:translate_sim_sequence",
            inputs={"model": "m2m_sim", "source_markers": "markers[skin={source}]",
                    "target_markers": "markers[skin={target}]"},
            params={**_EVAL, "sampler_steps": "m2m.sampler_steps"},

@@ -49,24 +49,31 @@ def _eval_rows(source, eval_indenters, val_indenters, n_eval) -> dict[str, np.nd
     return out
 
 
-def _stream(source, target, eval_indenters, val_indenters, n_eval, convert, method: str):
-    """Stream `convert(images) -> images` over the source sequence with its labels; then
-    features of each split's scored frames (features, eval_frames; features_val,
+def _stream(source, target, eval_indenters, val_indenters, n_eval, convert, method: str,
+            scored_only: bool = False):
+    """Stream `convert(images) -> images` over the source sequence with its labels (with
+    `scored_only`, over the scored frames alone: a translation only the image metrics read);
+    then features of each split's scored frames (features, eval_frames; features_val,
     eval_frames_val), the examples figure and timing."""
     from stages.imagemetrics import inception_features
     from tqdm import tqdm
     splits = _eval_rows(source, eval_indenters, val_indenters, n_eval)
     labels = [k for k in LABEL_KEYS if k in source]
-    n = len(source["images"])
+    rows_out = (np.unique(np.concatenate(list(splits.values()))) if scored_only
+                else np.arange(len(source["images"])))
+    n = len(rows_out)
     shape = np.asarray(target["reference"]).shape
     kept = {k: np.zeros((len(rows), *shape), np.uint8) for k, rows in splits.items()}
     t0 = time.perf_counter()
     for i in tqdm(range(0, n, CHUNK), desc=method, disable=None):
-        out = convert(np.asarray(source["images"][i:i + CHUNK]))
-        for k, rows in splits.items():
-            sel = (rows >= i) & (rows < i + len(out))
-            kept[k][sel] = out[rows[sel] - i]
-        yield {"images": out, **{k: np.asarray(source[k][i:i + CHUNK]) for k in labels}}
+        rows = rows_out[i:i + CHUNK]
+        out = convert(read_rows(source["images"], rows) if scored_only else np.asarray(source["images"][i:i + CHUNK]))
+        for k, wanted in splits.items():
+            at = np.searchsorted(rows, wanted)
+            sel = (at < len(rows)) & (rows[np.minimum(at, len(rows) - 1)] == wanted)
+            kept[k][sel] = out[at[sel]]
+        yield {"images": out, **{k: (read_rows(source[k], rows) if scored_only else np.asarray(source[k][i:i + CHUNK]))
+                                 for k in labels}}
     seconds = time.perf_counter() - t0
     result = {"reference": np.asarray(target["reference"], np.uint8)}
     for k, rows in splits.items():
@@ -85,12 +92,13 @@ def _stream(source, target, eval_indenters, val_indenters, n_eval, convert, meth
 
 def translate_sequence(*, model, source_markers, target_markers, eval_indenters: list[str], n_eval: int,
                        val_indenters: Sequence[str] = (), sampler_steps: int = 1, source: str = "",
-                       target: str = ""):
+                       target: str = "", scored_only: bool = False):
     """Nodes translate_sim[source,target] / translate[source,target]: the source sequence
     (source_markers, a marker artifact) translated into the target's marker style by the M2M
-    model (chunks: images + the source labels); returns the target's reference, features and
-    eval_frames of each split's scored frames, figures/examples and attrs.  source, target: the
-    skins' names (the fan-out's values)."""
+    model (chunks: images + the source labels; `scored_only`: the scored frames alone, all the
+    image metrics read); returns the target's reference, features and eval_frames of each
+    split's scored frames, figures/examples and attrs.  source, target: the skins' names (the
+    fan-out's values)."""
     from stages.m2m.model import load_translator
     translator = load_translator(model)
     src_ref = np.asarray(source_markers["reference"], np.uint8)
@@ -98,21 +106,29 @@ def translate_sequence(*, model, source_markers, target_markers, eval_indenters:
     with torch_threads():
         convert = lambda im: translator.translate(im, src_ref, tgt_ref, int(sampler_steps))
         result = yield from _stream(source_markers, target_markers, eval_indenters, val_indenters, n_eval,
-                                    convert, "m2m")
+                                    convert, "m2m", scored_only=bool(scored_only))
     result["attrs"].update(sampler_steps=int(sampler_steps), source=source, target=target)
+    return result
+
+
+def translate_sim_sequence(**kw):
+    """Node translate_sim[source,target]: translate_sequence on the scored frames alone (only
+    the sim_m2m study's image metrics read it)."""
+    result = yield from translate_sequence(**kw, scored_only=True)
     return result
 
 
 def flow_warp_sequence(*, source_markers, target_markers, eval_indenters: list[str], n_eval: int,
                        val_indenters: Sequence[str] = (), source: str = "", target: str = ""):
     """Node flow_warp[source,target]: the training-free baseline (stages.m2m.flow) with the
-    same outputs as translate_sequence."""
+    same outputs as translate_sequence, on the scored frames alone (only the image metrics read
+    it)."""
     from stages.m2m.flow import MarkerFlow, warp
     flow = MarkerFlow(np.asarray(source_markers["reference"], np.uint8))
     tgt_ref = np.asarray(target_markers["reference"], np.uint8)
     convert = lambda ims: np.stack([warp(tgt_ref, flow.field(im)) for im in ims])
     result = yield from _stream(source_markers, target_markers, eval_indenters, val_indenters, n_eval,
-                                convert, "flow_warp")
+                                convert, "flow_warp", scored_only=True)
     result["attrs"].update(source=source, target=target)
     return result
 

@@ -111,29 +111,36 @@ def test_motion_errors_only_where_both_skins_deformed_alike(skins, monkeypatch):
 
 
 def test_translation_streams_labels_and_matches_flow_warp_layout(skins, trained, monkeypatch):
+    """translate streams the whole sequence with its labels; flow_warp and translate_sim, which
+    only the image metrics read, the scored frames alone; all score the same frames alike."""
     monkeypatch.setattr(translate, "CHUNK", 20)
     monkeypatch.setattr("stages.imagemetrics.inception_features",
                         lambda images, **kw: np.repeat(np.mean(images, axis=(1, 2))[:, None], 4, axis=1))
     src, tgt = skins["Circle3"], skins["Array3"]
     split = dict(eval_indenters=["wave"], val_indenters=["sphere"], n_eval=4)
-    for gen in (translate.translate_sequence(model=trained, source_markers=src, target_markers=tgt, sampler_steps=2,
-                                         **split),
-                translate.flow_warp_sequence(source_markers=src, target_markers=tgt, **split)):
+    rows = eval_frame_indices(src, ["wave"], 4)
+    val = eval_frame_indices(src, ["sphere"], 4)               # the validation split's frames too
+    scored = np.unique(np.r_[rows, val])
+    for gen, whole in ((translate.translate_sequence(model=trained, source_markers=src, target_markers=tgt,
+                                                     sampler_steps=2, **split), True),
+                       (translate.translate_sim_sequence(model=trained, source_markers=src, target_markers=tgt,
+                                                         **split), False),
+                       (translate.flow_warp_sequence(source_markers=src, target_markers=tgt, **split), False)):
         chunks, out = run_node(gen)
-        assert [len(c["images"]) for c in chunks] == [20, 20, 8]
+        kept = np.arange(len(src["images"])) if whole else scored
+        assert [len(c["images"]) for c in chunks] == ([20, 20, 8] if whole else [len(scored)])
         for key in ("force", "depth", "phase", "contact_id", "indenter_id", "paired", "frame"):
-            np.testing.assert_array_equal(np.concatenate([c[key] for c in chunks]), src[key])
+            np.testing.assert_array_equal(np.concatenate([c[key] for c in chunks]), src[key][kept])
         images = np.concatenate([c["images"] for c in chunks])
-        assert images.shape == src["images"].shape and set(np.unique(images)) <= {0, 255}
+        assert images.shape == (len(kept), *src["images"].shape[1:]) and set(np.unique(images)) <= {0, 255}
         np.testing.assert_array_equal(out["reference"], tgt["reference"])
-        rows = eval_frame_indices(src, ["wave"], 4)
+        at = {int(r): i for i, r in enumerate(kept)}
         np.testing.assert_array_equal(out["eval_frames"], src["frame"][rows])
-        np.testing.assert_allclose(out["features"][:, 0], images[rows].mean(axis=(1, 2)))
-        val = eval_frame_indices(src, ["sphere"], 4)               # the validation split's frames too
+        np.testing.assert_allclose(out["features"][:, 0], images[[at[r] for r in rows]].mean(axis=(1, 2)))
         np.testing.assert_array_equal(out["eval_frames_val"], src["frame"][val])
-        np.testing.assert_allclose(out["features_val"][:, 0], images[val].mean(axis=(1, 2)))
+        np.testing.assert_allclose(out["features_val"][:, 0], images[[at[r] for r in val]].mean(axis=(1, 2)))
         assert out["indenters"] == ["sphere", "wave"] and out["attrs"]["n_eval"] == 4
-        assert out["attrs"]["val_indenters"] == ["sphere"]
+        assert out["attrs"]["val_indenters"] == ["sphere"] and out["attrs"]["frames"] == len(kept)
         assert bytes(out["figures"]["examples"][:4]) == PNG
     assert out["attrs"]["method"] == "flow_warp"
 
