@@ -59,7 +59,8 @@ def test_homo_frames_forces_torques_and_pairs_are_the_files(dataset):
     root, truth = dataset
     art, final = run(root, "Array-I")
     contacts = ordered(truth["Array-I"])
-    assert final["indenters"] == ["cone", "sphere_s", "wave"] and final["attrs"]["frames"] == len(art["phase"])
+    assert final["indenters"] == list(ALL_INDENTERS) and final["attrs"]["frames"] == len(art["phase"])
+    assert [final["indenters"][i] for i in np.unique(art["indenter_id"])] == ["cone", "sphere_s", "wave"]
     row = 0
     for cid, c in enumerate(contacts):
         rows = slice(row, row + c["n"])
@@ -122,7 +123,7 @@ def test_hetero_depth_is_the_authors_normalisation(dataset):
 def test_modulus_crlf_files_and_spelling_variants(dataset):
     root, truth = dataset
     art, final = run(root, "ratio_6", size=(48, 64), modulus_depth_mm=1.5)     # CRLF everywhere
-    assert final["indenters"] == ["cone", "sphere_s", "wave"]                    # folder sphere-s
+    assert [final["indenters"][i] for i in np.unique(art["indenter_id"])] == ["cone", "sphere_s", "wave"]   # sphere-s
     z = np.concatenate([np.r_[c["inc"], c["dec"]] for c in ordered(truth["ratio_6"])])
     np.testing.assert_array_equal(art["normalised_depth"], z.astype(np.float32))
     np.testing.assert_array_equal(art["depth"], (z * 1.5).astype(np.float32))
@@ -152,6 +153,7 @@ def test_pairs_by_motion_position_never_by_frame_number(dataset):
     # the twins' pairing (equal `frame` keys) pairs the same frames
     frames, rows = paired_table({"A": a, "B": b}, ["A", "B"], ["cone", "sphere_s", "wave"])
     assert sorted(zip(rows[0].tolist(), rows[1].tolist())) == sorted(zip(ra.tolist(), rb.tolist()))
+    assert (np.diff(rows, axis=1) > 0).all()        # in key order, each sensor's rows in row order
     assert not set(a["frame"][~a["paired"]].tolist()) & set(b["frame"].tolist())
 
 
