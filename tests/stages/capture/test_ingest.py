@@ -165,6 +165,21 @@ def test_a_contact_without_forces_is_left_out_as_the_authors_do(dataset, tmp_pat
     assert final["attrs"]["skipped"] == ["wave/10"] and final["attrs"]["contacts"] == 5
 
 
+def test_indenters_of_a_lab_follow_the_papers_and_keys_grow_with_the_rows(tmp_path):
+    """`indenters` lists every paper indenter (a split naming one the sensor lacks selects
+    nothing), then a lab's own; paired frame keys grow with the rows, 0000 first."""
+    from stages.capture.ingest import indenter_code
+    training = tmp_path / "training"
+    fx.write_sensor(training, "homo", "Array-I", ["wave", "star", "knob"], [3, 1])
+    art, final = run(tmp_path, "Array-I", size=(48, 64))
+    extra = sorted(["star", "knob"], key=indenter_code)
+    assert final["indenters"] == [*ALL_INDENTERS, *extra]
+    assert [final["indenters"][i] for i in dict.fromkeys(art["indenter_id"].tolist())] == ["wave", *extra]
+    keys = art["frame"][art["paired"]]
+    assert (np.diff(keys) > 0).all() and len(keys) == 3 * 2 * 4
+    assert (keys % 10)[:4].tolist() == [0, 1, 2, 3]                  # 0000, then the three motion ends
+
+
 def test_npy_csv_last_files_are_read_first(dataset, tmp_path):
     """training_utils.py looks in the sibling npy_csv/ folder before the image folder."""
     root = tmp_path / "d"
