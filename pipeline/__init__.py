@@ -4,6 +4,6 @@ The engine knows nothing of the science it runs; a project names its graph in
 pyproject.toml (`[tool.pipeline] graph = "module:ATTR"`).
 """
 from pipeline.errors import PipelineError
-from pipeline.graph import Graph, Listing, Node
+from pipeline.graph import Graph, Listing, Node, Wiring
 
-__all__ = ["Graph", "Listing", "Node", "PipelineError"]
+__all__ = ["Graph", "Listing", "Node", "PipelineError", "Wiring"]

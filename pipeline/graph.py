@@ -12,16 +12,23 @@ Input references:
                            the remaining grid values ("b=2" or just "2" for one variable)
   "up[a=@params.key]"      gather the instances whose `a` is in that params list (keyed
                            by `a` too), so a node needs only the instances it reads
+  "{seq[{skin}]}"          a template indexing a node param by this instance's grid value; a
+                           reference that formats to "" is no input (the function's default)
 
 A grid entry's values come from params (a key, or keys joined by " + "), a literal list, or
 a `Listing`: a light plan-time function named by import path that lists them from params
 values and the world they name (the folders of a dataset), e.g. the sensors a dataset holds.
+A `Wiring` param (a Listing) only chooses a node's inputs: templates and selectors read it, the
+function and the cache key do not.  A Listing param that fails with a user error does not stop
+the plan: its instance carries the error, raised when a run needs that instance.
 """
 from __future__ import annotations
 
+import copy
 import difflib
 import importlib
 import re
+import string
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
@@ -30,6 +37,7 @@ from pipeline.errors import PipelineError
 
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 _REF = re.compile(r"^(?P<node>[A-Za-z_][A-Za-z0-9_]*)(\[(?P<sel>[^\]]*)\])?$")
+_VAR = re.compile(r"\{([A-Za-z_][A-Za-z0-9_]*)\}")
 
 
 @dataclass(frozen=True)
@@ -48,6 +56,14 @@ class Listing:
     def describe(self) -> str:
         keys = ", ".join(self.params.values())
         return f"{self.func}({keys})"
+
+
+@dataclass(frozen=True)
+class Wiring(Listing):
+    """A node param that only chooses the node's inputs (e.g. which node holds a sensor's data
+    under these params): resolved as a Listing param and read by input templates and "@"
+    selectors, but neither passed to the function nor part of its params or cache key, which
+    the chosen inputs' digests already determine."""
 
 
 @dataclass(frozen=True)
@@ -75,6 +91,7 @@ class Instance:
     params: dict[str, Any]                       # resolved: arg -> value
     inputs: dict[str, str | dict[str, str]] = field(default_factory=dict)  # arg -> instance name(s)
     param_keys: list[str] = field(default_factory=list)  # resolved dotted keys (for dvc)
+    problem: str | None = None    # a Listing param's user error: raised when a run needs this instance
 
     @property
     def name(self) -> str:
@@ -177,8 +194,10 @@ class Graph:
                     if up not in self.nodes:
                         raise PipelineError(f"node '{name}' input '{arg}' names unknown node '{up}'")
                     visit(up, stack + [name])
-            made = [self._instance(node, b, params, by_node, lambda up: visit(up, stack + [name]))
-                    for b in self._grid_points(node, params)]
+            points = self._grid_points(node, params)
+            listed = _listed_params(node, params) if points else {}
+            made = [self._instance(node, b, params, by_node, lambda up: visit(up, stack + [name]), listed)
+                    for b in points]
             by_node[name] = made
             out.update((i.name, i) for i in made)
             state[name] = 2
@@ -225,13 +244,16 @@ class Graph:
             points = [p + r for p in points for r in rows]
         return points
 
-    def _instance(self, node: Node, bindings, params, by_node, need) -> Instance:
+    def _instance(self, node: Node, bindings, params, by_node, need, listed) -> Instance:
         env = {k: _fmt(v) for k, v in bindings}
-        resolved, keys = {}, []
+        resolved, keys, problem = {}, [], None
         for arg, key in node.params.items():
             if isinstance(key, Listing):
-                resolved[arg] = _listed(node.name, arg, key, params, kinds=(list, dict))
                 keys += [k for k in key.params.values() if k not in keys]
+                if isinstance(listed[arg], _UserError):   # this instance's problem, not the plan's
+                    problem = problem or str(listed[arg])
+                else:   # a copy each: a function that changes its param changes no other instance's
+                    resolved[arg] = copy.deepcopy(listed[arg])
                 continue
             dotted = key.format(**env)
             try:
@@ -249,13 +271,19 @@ class Graph:
         keys += [k.strip() for spec in node.grid.values() if isinstance(spec, str) for k in spec.split("+")]
         listed = [k for spec in node.grid.values() if isinstance(spec, Listing) for k in spec.params.values()]
         keys += [k for k in dict.fromkeys(listed) if k not in keys]
-        inst = Instance(node, tuple(bindings), resolved, param_keys=keys)
+        passed = {k: v for k, v in resolved.items() if not isinstance(node.params[k], Wiring)}
+        inst = Instance(node, tuple(bindings), passed, param_keys=keys, problem=problem)
         for arg, ref in node.inputs.items():
+            if problem is not None:
+                break
             try:  # templates use grid values and the instance's params: "{spec[source]}[skin={skin}]"
-                up_name, sel = parse_selector(ref.format(**resolved, **env))
-            except (KeyError, IndexError, TypeError, AttributeError):
+                text = _Template(env).format(ref, **resolved, **env)
+            except (KeyError, IndexError, TypeError, AttributeError, ValueError):
                 raise PipelineError(f"node '{inst.name}' input '{arg}': template {ref!r} uses a "
                                     f"variable or key not in its grid {list(env)} or params") from None
+            if not text.strip():     # a wiring value left this input out
+                continue
+            up_name, sel = parse_selector(text)
             if up_name not in self.nodes:
                 raise PipelineError(f"node '{inst.name}' input '{arg}': unknown node '{up_name}'")
             need(up_name)
@@ -310,10 +338,14 @@ class Graph:
     def select(self, instances: dict[str, Instance], targets: list[str] | None) -> list[str]:
         """Instance names named by targets (node names, instances or partial selectors)."""
         targets = list(targets or self.default_targets or [])
-        if not targets:  # default: every sink but source and on-demand nodes (they run when named)
-            used = {u for i in instances.values() for u in i.upstream()}
+        if not targets:  # default: every sink but source and on-demand nodes (they run when named),
+            blocked: set[str] = set()   # of what these params can run (see Instance.problem)
+            for n, i in instances.items():
+                if i.problem is not None or any(u in blocked for u in i.upstream()):
+                    blocked.add(n)
+            used = {u for n, i in instances.items() if n not in blocked for u in i.upstream()}
             return [n for n, i in instances.items()
-                    if n not in used and not i.node.source and not i.node.on_demand]
+                    if n not in used and n not in blocked and not i.node.source and not i.node.on_demand]
         chosen: list[str] = []
         for t in targets:
             node, sel = parse_selector(t)
@@ -340,15 +372,46 @@ class Graph:
         return chosen
 
     def closure(self, instances: dict[str, Instance], names: list[str]) -> list[str]:
-        """The named instances and all their ancestors, in topological order."""
+        """The named instances and all their ancestors, in topological order; an error if one
+        of them could not be planned (Instance.problem)."""
         need: set[str] = set()
         stack = list(names)
         while stack:
             n = stack.pop()
             if n not in need:
+                if instances[n].problem is not None:
+                    raise PipelineError(f"node {n}: {instances[n].problem}")
                 need.add(n)
                 stack += instances[n].upstream()
         return [n for n in instances if n in need]
+
+
+class _UserError(PipelineError):
+    """A Listing's own one-line error (its exception class sets user_error)."""
+
+
+class _Template(string.Formatter):
+    """str.format whose indices may name grid variables in braces: "{seq[{skin}]}" reads the
+    param seq at this instance's value of skin."""
+
+    def __init__(self, env: Mapping[str, str]):
+        super().__init__()
+        self.env = env
+
+    def get_field(self, field_name, args, kwargs):
+        return super().get_field(_VAR.sub(lambda m: self.env[m.group(1)], field_name), args, kwargs)
+
+
+def _listed_params(node: Node, params: dict) -> dict[str, Any]:
+    """A node's Listing params' values (the same for all its instances), or their user errors."""
+    out: dict[str, Any] = {}
+    for arg, spec in node.params.items():
+        if isinstance(spec, Listing):
+            try:
+                out[arg] = _listed(node.name, arg, spec, params, kinds=(list, dict))
+            except _UserError as exc:
+                out[arg] = exc
+    return out
 
 
 def _listed(node: str, entry: str, spec: Listing, params: dict, kinds=(list,)):
@@ -365,7 +428,7 @@ def _listed(node: str, entry: str, spec: Listing, params: dict, kinds=(list,)):
         raise
     except Exception as exc:  # noqa: BLE001 - a listing's failure is the plan's, in one line
         if getattr(exc, "user_error", False) is True:
-            raise PipelineError(str(exc)) from None
+            raise _UserError(str(exc)) from None
         raise PipelineError(f"node '{node}' grid '{entry}': {spec.func} failed: "
                             f"{type(exc).__name__}: {exc}") from None
     if not isinstance(values, kinds):

@@ -3,20 +3,28 @@ artifacts and params keys it reads, and what it fans out over.
 
 Functions are named by import path so that deciding what is stale imports no science.
 """
-from pipeline import Graph, Listing
+from pipeline import Graph, Listing, Wiring
 
 GRAPH = Graph()
 
-# which sensors each node runs on, from the sensor catalogue (params `sensors`, `studies`)
-_CAT = {"sensors": "sensors", "studies": "studies"}
+# which sensors each node runs on, from the sensor catalogue (params `sensors`, `studies`), and
+# with `data.source: authors` the authors' released sets under data.root (docs/authors-dataset.md)
+_CAT = {"sensors": "sensors", "studies": "studies", "data_source": "data.source", "data_root": "data.root"}
 
 
 def _cat(func: str, **args) -> Listing:
     return Listing(f"stages.catalogue:{func}", _CAT, args)
 
 
-def _members(study: str) -> Listing:
-    return _cat("members", study=study)
+def _members(study: str, **args) -> Listing:
+    return _cat("members", study=study, **args)
+
+
+# which node holds a sensor's data (the twin's markers or the authors' ingest) and its calibration
+# (calibrate or authors_calibration): inputs "{seq[{skin}]}", "{seqs[node]}[{seqs[var]}=@members]"
+_SEQ = {"seq": Wiring("stages.catalogue:sequences", _CAT)}
+_SEQS = {"seqs": Wiring("stages.catalogue:sequence_node", _CAT)}
+_SEQS_GATHER = "{seqs[node]}[{seqs[var]}=@%s]"
 
 # -- simulation twin: shapes and where they press ---------------------------------------
 GRAPH.node("indenters", "stages.sim.indenters:indenter_set",
@@ -75,7 +83,7 @@ GRAPH.node("taxels", "stages.markers.uskin:taxel_sequence",
 GRAPH.node("markers", "stages.markers.unify:marker_sequence",
            inputs={"source": "{spec[source]}[skin={skin}]"},
            params={"spec": "sensors.{skin}", "segmentation": "segmentation"},
-           grid={"skin": _cat("active")},
+           grid={"skin": _cat("active", twin_only=True)},
            description="binary marker images: segmentation of camera looks, signal-to-marker of taxels")
 
 # -- hardware: capture (source nodes: run only when named) ------------------------------------
@@ -123,12 +131,12 @@ GRAPH.node("m2m_sim", "stages.m2m.fit:pretrain",
                    "source_gate": "m2m.pretrain.source_gate"},
            description="M2M generator trained from scratch on the 12 simulation patterns")
 GRAPH.node("m2m", "stages.m2m.fit:finetune",
-           inputs={"base": "m2m_sim", "markers": "markers[skin=@skins]"},
-           params={"skins": _cat("force_sensors"), "train_indenters": "splits.m2m_indenters",
+           inputs={"base": "m2m_sim", "markers": _SEQS_GATHER % "skins"},
+           params={**_SEQS, "skins": _cat("force_sensors"), "train_indenters": "splits.m2m_indenters",
                    "pairs_per_skin": "m2m.finetune.pairs_per_skin", "steps": "m2m.finetune.steps",
                    "batch_size": "m2m.finetune.batch_size", "lr": "m2m.finetune.lr",
                    "seed": "m2m.finetune.seed", "change_share": "m2m.finetune.change_share"},
-           description="M2M fine-tuned to the twin sensors with a few location-paired frames each")
+           description="M2M fine-tuned to the force studies' sensors with a few location-paired frames each")
 _EVAL = {"eval_indenters": "splits.test_indenters", "val_indenters": "splits.val_indenters",
          "n_eval": "m2m.n_eval"}
 GRAPH.node("translate_sim", "stages.m2m.translate:translate_sim_sequence",
@@ -139,19 +147,17 @@ GRAPH.node("translate_sim", "stages.m2m.translate:translate_sim_sequence",
            description="a simulation pattern's sequence in another pattern's style")
 _TRANSFER_PAIRS = _cat("transfer_pairs")
 GRAPH.node("translate", "stages.m2m.translate:translate_sequence",
-           inputs={"model": "m2m", "source_markers": "markers[skin={source}]",
-                   "target_markers": "markers[skin={target}]"},
-           params={**_EVAL, "sampler_steps": "m2m.sampler_steps"},
+           inputs={"model": "m2m", "source_markers": "{seq[{source}]}", "target_markers": "{seq[{target}]}"},
+           params={**_EVAL, **_SEQ, "sampler_steps": "m2m.sampler_steps"},
            grid={"source,target": _TRANSFER_PAIRS},
            description="a calibrated sensor's sequence in an uncalibrated sensor's style")
 GRAPH.node("flow_warp", "stages.m2m.translate:flow_warp_sequence",
-           inputs={"source_markers": "markers[skin={source}]",
-                   "target_markers": "markers[skin={target}]"},
-           params=_EVAL,
+           inputs={"source_markers": "{seq[{source}]}", "target_markers": "{seq[{target}]}"},
+           params={**_EVAL, **_SEQ},
            grid={"source,target": _cat("image_pairs")},
            description="training-free baseline: the source's marker motion warps the target's reference")
 GRAPH.node("features", "stages.m2m.translate:image_features",
-           inputs={"markers": "markers[skin={skin}]"}, params=_EVAL,
+           inputs={"markers": "{seq[{skin}]}"}, params={**_EVAL, **_SEQ},
            grid={"skin": _cat("active")},
            description="InceptionV3 features of a skin's scored frames (FID/KID)")
 # the simulation patterns' features and flow-warps only, so that the study needs no twin
@@ -168,24 +174,25 @@ _FIT = {"config": "force.config", "steps": "force.steps", "batch_size": "force.b
         "lr": "force.lr", "finetune_steps": "force.finetune_steps",
         "train_indenters": "splits.train_indenters"}
 GRAPH.node("own", "stages.force.fit:fit_own",
-           inputs={"markers": "markers[skin={skin}]"},
-           params={**{k: v for k, v in _FIT.items() if k != "finetune_steps"}, "seed": "force.seed"},
+           inputs={"markers": "{seq[{skin}]}"},
+           params={**{k: v for k, v in _FIT.items() if k != "finetune_steps"}, "seed": "force.seed", **_SEQ},
            grid={"skin": _cat("force_sensors")},
            description="force regressor on a skin's own labels: source-only model and oracle")
+# a sensor's calibration: the twin's calibrate of its body, the authors' curves, or none (the
+# authors' homo set: one gel, no compensation)
 GRAPH.node("transfer", "stages.force.fit:fit_transfer",
            inputs={"translated": "translate[source={source},target={target}]",
-                   "source_calibration": "calibrate[sensor={source_spec[body]}]",
-                   "target_calibration": "calibrate[sensor={target_spec[body]}]",
-                   "target_markers": "markers[skin={target}]",
+                   "source_calibration": "{cal[{source}]}", "target_calibration": "{cal[{target}]}",
+                   "target_markers": "{seq[{target}]}",
                    "captured_calibrations": "capture_calibration[*]"},
            params={**_FIT, "seed": "force.seed", "additions": "plus.additions",
-                   "pairs": "m2m.finetune.pairs_per_skin",
-                   "source_spec": "sensors.{source}", "target_spec": "sensors.{target}"},
+                   "pairs": "m2m.finetune.pairs_per_skin", **_SEQ,
+                   "cal": Wiring("stages.catalogue:calibrations", _CAT)},
            grid={"source,target": _TRANSFER_PAIRS},
            description="GenForce: regressors on translated images with source labels, raw (genforce), "
                        "compensated (genforce_comp) and with our additions (genforce_plus)")
 # each study reads only its own sensors' artifacts (node param `members`, the @ selectors)
-_STUDY = {"features": "features[skin=@members]", "markers": "markers[skin=@members]",
+_STUDY = {"features": "features[skin=@members]", "markers": _SEQS_GATHER % "members",
           "translated": "translate[source=@members,target=@members]",
           "warped": "flow_warp[source=@members,target=@members]",
           "own": "own[skin=@members]", "transfer": "transfer[source=@members,target=@members]"}
@@ -196,7 +203,8 @@ for _study, _what in (("homo", "study homo (paper Fig. 4): the five GelSight twi
                                    "with and without compensation"),
                       ("hetero", "study hetero (paper Fig. 6): GelSight, TacTip, uSkin")):
     GRAPH.node(_study, f"stages.studies:{_study}_study", inputs=_STUDY,
-               params={**_STUDY_PARAMS, "members": _members(_study), "groups": _cat("groups", study=_study)},
+               params={**_STUDY_PARAMS, **_SEQS, "members": _members(_study, check=True),
+                       "groups": _cat("groups", study=_study)},
                description=_what)
 
 # -- the ablation of genforce_plus: run only when named (`pipeline run ablation`) -------------
@@ -208,12 +216,12 @@ GRAPH.node("transfer_seed", "stages.force.fit:fit_transfer_seed",
            description="a pair's genforce_comp trained again from another seed (the ablation's spread)")
 GRAPH.node("ablation", "stages.force.study:ablation_study",
            inputs={"transfer": "transfer[*]", "seeds": "transfer_seed[*]", "translated": "translate[*]",
-                   "markers": "markers[*]"},
+                   "markers": "{seqs[node]}[*]"},
            params={"homo": _cat("groups", study="homo"), "material": _cat("groups", study="material"),
                    "hetero": _cat("groups", study="hetero"),
                    "val_indenters": "splits.val_indenters",
                    "train_indenters": "splits.train_indenters", "pairs": "m2m.finetune.pairs_per_skin",
-                   "additions": "plus.additions"},
+                   "additions": "plus.additions", **_SEQS},
            on_demand=True,
            description="what each addition of genforce_plus earns on the validation indenters, "
                        "beside the seed spread")
@@ -229,7 +237,9 @@ GRAPH.node("control", "stages.control.nodes:control_node",
                    "segmentation": "segmentation", "backend": "render.backend", "size": "render.size",
                    "duration_s": "control.duration_s", "pull": "control.pull", "seed": "control.seed",
                    "reference_seed": "control.reference_seed",
-                   "tolerance_N": "control.tolerance_N"},
+                   "tolerance_N": "control.tolerance_N",
+                   # the gripper twin's skins are the twin's: no control run on the authors' data
+                   "twin": Wiring("stages.catalogue:twin_data", {"data_source": "data.source"})},
            description="study control (paper Fig. 7): grasping at a target force, slip avoidance")
 
 # -- the answer first: the studies' test figures beside the paper's ------------------------

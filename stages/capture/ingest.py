@@ -24,11 +24,14 @@ Per frame (N = all frames of the sensor):
   indenter_id  (N,) int16: index into `indenters` (names)
   file_frame   (N,) int32: the frame file's NNNN
   frame        (N,) int64: a location key, equal in two sensors exactly where the authors pair
-               them: indenter code * 10^8 + point * 10 + paired_position on paired frames (code
-               1 + the indenter's index in stages.sim.indenters.ALL_INDENTERS, or 100 + CRC-32
-               of an unknown name), and a negative number unique to the sensor elsewhere; so
-               stages.m2m.data.paired_table pairs real sensors as it pairs the twins.  Frame
-               counts differ between sensors at one location: frame numbers never pair.
+               them: indenter code * 10^8 + point * 10 + (paired_position + 1) % 4 on paired
+               frames (code 1 + the indenter's index in stages.sim.indenters.ALL_INDENTERS, or
+               100 + CRC-32 of an unknown name), and a negative number unique to the sensor
+               elsewhere; so stages.m2m.data.paired_table pairs real sensors as it pairs the
+               twins.  Frame counts differ between sensors at one location: frame numbers never
+               pair.  Paired keys grow with the row (0000 first; contacts by code, then point),
+               as the twins' frame numbers do: readers that take paired rows in key order read
+               them in row order.
   depth, normalised_depth, loading   (N,) where the set has depth (modulus, hetero):
                inc_z.csv's rows then dec_z.csv's, which together must number the ft.csv rows;
                loading = the row is in inc_z (the authors evaluate their `_down` curve there,
@@ -39,7 +42,8 @@ Per frame (N = all frames of the sensor):
                values to the curves unchanged, so normalised_depth = the value and depth = the
                value * modulus_depth_mm (their calibration pressed 1 mm).
 Once: reference (H,W) (<sensor>_ref.npy or .jpg beside the sensor folders, else the first
-contact's 0000), indenters, attrs (sensor, set, counts, skipped contacts, assumptions).
+contact's 0000), indenters (stages.sim.indenters.ALL_INDENTERS, then any other name found),
+attrs (sensor, set, counts, skipped contacts, assumptions).
 Images stream in chunks of CHUNK frames; the small labels are read first (every file is
 checked before any frame is decoded).
 """
@@ -165,7 +169,8 @@ def scan(dirs: SensorDirs) -> tuple[list[Contact], list[str]]:
         raise InputError(f"no indenter folders under {dirs.images}")
     forces = _by_canonical(dirs.force, "forces")
     depths = _by_canonical(dirs.depth, "depth") if dirs.depth is not None else {}
-    order = [n for n in ALL_INDENTERS if n in images] + sorted(n for n in images if n not in ALL_INDENTERS)
+    order = [n for n in ALL_INDENTERS if n in images] + sorted((n for n in images if n not in ALL_INDENTERS),
+                                                               key=indenter_code)
     contacts, skipped = [], []
     for name in order:
         for point, pname in _points(dirs.images / images[name]):
@@ -288,7 +293,9 @@ def ingest(*, root: str, sensor: str, size, modulus_depth_mm: float = 1.0):
     size = (int(size[0]), int(size[1]))
     dirs = locate(root, sensor)
     contacts, skipped = scan(dirs)
-    names = list(dict.fromkeys(c.indenter for c in contacts))
+    # every indenter name, as the twin's sequences list them: a split naming an indenter this
+    # sensor lacks then selects no contact of it instead of failing
+    names = list(ALL_INDENTERS) + [n for n in dict.fromkeys(c.indenter for c in contacts) if n not in ALL_INDENTERS]
     with_torque = all(c.torque is not None for c in contacts)
     normalise, depth_attrs = (_depth_frame(sensor, dirs.set, contacts, modulus_depth_mm)
                               if dirs.depth is not None else (None, {}))
@@ -297,7 +304,8 @@ def ingest(*, root: str, sensor: str, size, modulus_depth_mm: float = 1.0):
     row0 = 0
     for cid, c in enumerate(contacts):
         lab = contact_labels(c)
-        key = indenter_code(c.indenter) * 10 ** 8 + c.point * 10 + lab["paired_position"].astype(np.int64)
+        slot = (lab["paired_position"].astype(np.int64) + 1) % 4          # 0000 first
+        key = indenter_code(c.indenter) * 10 ** 8 + c.point * 10 + slot
         lab["frame"] = np.where(lab["paired"], key, unpaired_base - 1 - (row0 + np.arange(c.n)))
         row0 += c.n
         lab.update(force=c.force.astype(np.float32), contact_id=np.full(c.n, cid, np.int32),

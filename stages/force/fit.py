@@ -79,14 +79,15 @@ def fit_own(*, markers: Mapping, skin: str, train_indenters: Sequence[str], conf
             "figures": {"loss": loss_figure({skin: history}, f"own[{skin}]")}}
 
 
-def calibrations(twins, specs, captured: Mapping | None) -> tuple[tuple, dict]:
+def calibrations(given, captured: Mapping | None) -> tuple[tuple, dict]:
     """The (source, target) calibrations a transfer compensates with: each sensor's captured
     calibration (captured: sensor body -> capture_calibration artifact) where there is one, else
-    its twin's calibrate artifact; and {"source"|"target": "capture_calibration[sensor=...]"}
-    for the captured ones (empty without)."""
+    the one given (its twin's calibrate artifact, whose attrs name the body; the authors'
+    curves; or None); and {"source"|"target": "capture_calibration[sensor=...]"} for the
+    captured ones (empty without)."""
     chosen, which = [], {}
-    for end, twin, spec in zip(("source", "target"), twins, specs):
-        sensor = None if spec is None else spec.get("body")
+    for end, twin in zip(("source", "target"), given):
+        sensor = None if twin is None else attrs_of(twin).get("sensor")
         if captured and sensor in captured:
             chosen.append(captured[sensor])
             which[end] = f"capture_calibration[sensor={sensor}]"
@@ -95,21 +96,25 @@ def calibrations(twins, specs, captured: Mapping | None) -> tuple[tuple, dict]:
     return tuple(chosen), which
 
 
-def compensated_labels(translated: Mapping, curves: Mapping) -> np.ndarray:
+def compensated_labels(translated: Mapping, curves: Mapping | None) -> np.ndarray:
     """(N,3) the translations' (source's) labels compensated with `curves` ({"source", "target":
-    Curves.as_dict()}, as a transfer records them): the paper's compensation."""
+    Curves.as_dict()}, as a transfer records them): the paper's compensation.  Without curves
+    (None: neither sensor has a calibration) or with equal ones, the labels as they are, and no
+    depth is read."""
     from stages.force.compensation import Curves, compensate, loading_mask
+    if curves is None or Curves.from_dict(curves["source"]) == Curves.from_dict(curves["target"]):
+        return np.array(translated["force"], np.float32)
     return compensate(np.asarray(translated["force"], np.float32),
                       np.asarray(translated["normalised_depth"], float),
                       loading_mask(np.asarray(translated["phase"])),
                       Curves.from_dict(curves["source"]), Curves.from_dict(curves["target"]))
 
 
-def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_calibration: Mapping,
-                 source: str, target: str, config: Mapping, steps: int, batch_size: int, lr: float,
-                 seed: int, finetune_steps: int, train_indenters: Sequence[str] | None = None,
+def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mapping, steps: int,
+                 batch_size: int, lr: float, seed: int, finetune_steps: int,
+                 source_calibration: Mapping | None = None, target_calibration: Mapping | None = None,
+                 train_indenters: Sequence[str] | None = None,
                  target_markers: Mapping | None = None, pairs: int = 0, additions: Sequence[str] = (),
-                 source_spec: Mapping | None = None, target_spec: Mapping | None = None,
                  captured_calibrations: Mapping | None = None, checkpoint: str | None = None) -> dict:
     """Node `transfer[source,target]`: regressors on the source's sequences translated into the
     target's style (images; reference = the target's):
@@ -122,9 +127,12 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
                      `train_indenters` (its images only).
 
     The material prior of each sensor is its `calibrate` artifact (the twin's), or its
-    `capture_calibration` where `captured_calibrations` (sensor -> artifact) holds one (attrs
-    calibration: which).  Both fits follow the same two-stage schedule from the same seed and
-    differ only in their labels: `steps` at `lr` on the translated contacts of
+    `capture_calibration` where `captured_calibrations` (sensor body -> artifact) holds one
+    (attrs calibration: which), or its `authors_calibration` (the authors' curves).  Where
+    neither sensor has one (the authors' homo set: one gel) there is nothing to compensate:
+    attrs curves None, and the translations need no normalised_depth.  Both fits follow the
+    same two-stage schedule from the same seed and differ only in their labels: `steps` at
+    `lr` on the translated contacts of
     `train_indenters` (None: all), then `finetune_steps` at lr * finetune_lr_factor (0 skips
     it).  Where the two calibrations give the same curves the compensation is the identity and
     genforce_comp is genforce's weights, not retrained (attrs compensation_identity).
@@ -137,20 +145,26 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
     name = f"transfer[{source}->{target}]"
     additions = plus.check_additions(additions, name)
     (source_calibration, target_calibration), calibration_from = calibrations(
-        (source_calibration, target_calibration), (source_spec, target_spec), captured_calibrations)
+        (source_calibration, target_calibration), captured_calibrations)
+    if (source_calibration is None) != (target_calibration is None):
+        from stages.common import InputError
+        missing = source if source_calibration is None else target
+        raise InputError(f"{name}: {missing} has no material calibration but the other sensor has: "
+                         "compensation needs both (or neither)")
     model_cfg, train = split_config(config)
-    src_curves = curves_from_calibration(source_calibration)
-    tgt_curves = curves_from_calibration(target_calibration)
-    curves = {"source": src_curves.as_dict(), "target": tgt_curves.as_dict()}
+    calibrated = source_calibration is not None
+    src_curves = curves_from_calibration(source_calibration) if calibrated else None
+    tgt_curves = curves_from_calibration(target_calibration) if calibrated else None
+    curves = {"source": src_curves.as_dict(), "target": tgt_curves.as_dict()} if calibrated else None
     runs = contact_runs(translated, train_indenters)
     if not runs:
         raise ValueError(f"{name}: no translated contacts to train on")
-    paired = (plus.paired_frames(translated, target_markers, compensated_labels(translated, curves),
-                                 train_indenters, pairs) if additions else None)
+    comp = compensated_labels(translated, curves)
+    paired = (plus.paired_frames(translated, target_markers, comp, train_indenters, pairs)
+              if additions else None)
     reference = np.asarray(translated["reference"])
     force = np.asarray(translated["force"], np.float32)
     identity = src_curves == tgt_curves
-    comp = compensated_labels(translated, curves)
     seqs = make_sequences(read_runs(translated, "images", runs), [force[a:b] for a, b in runs],
                           reference, model_cfg)
     kwargs = dict(steps=int(steps), finetune_steps=int(finetune_steps), batch_size=int(batch_size),
@@ -176,6 +190,11 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
              label_scale(np.asarray(translated["normalised_depth"], float)[rows], loading_mask(phase[rows]),
                          src_curves, tgt_curves))
     kept, timing = _split_timing(histories, ckpt)
+    figures = {"loss": loss_figure(histories, name)}
+    if calibrated:
+        figures["compensation"] = curves_figure({source: (source_calibration, src_curves),
+                                                 target: (target_calibration, tgt_curves)},
+                                                f"compensation {source} -> {target}")
     return {"genforce": to_arrays(genforce), "genforce_comp": to_arrays(genforce_comp),
             "genforce_plus": to_arrays(genforce_plus),
             "attrs": {"config": genforce.config,
@@ -191,10 +210,7 @@ def fit_transfer(*, translated: Mapping, source_calibration: Mapping, target_cal
                       "train_indenters": None if train_indenters is None else list(train_indenters),
                       "history": kept},
             "timing": timing,
-            "figures": {"loss": loss_figure(histories, name),
-                        "compensation": curves_figure({source: (source_calibration, src_curves),
-                                                       target: (target_calibration, tgt_curves)},
-                                                      f"compensation {source} -> {target}")}}
+            "figures": figures}
 
 
 def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, config: Mapping,

@@ -122,7 +122,10 @@ def _motion_errors(study, pairs, names, index, features, markers, sources, metho
         if s not in markers or t not in markers:
             continue
         frames = np.asarray(features[t]["eval_frames"])
-        rows_s, rows_t = rows_of(markers[s], frames), rows_of(markers[t], frames)
+        try:
+            rows_s, rows_t = rows_of(markers[s], frames), rows_of(markers[t], frames)
+        except KeyError:             # the source never pressed some of those locations: no truth
+            continue
         if not np.array_equal(read(markers[s]["force"], rows_s), read(markers[t]["force"], rows_t)):
             continue                 # two twins pressed alike but deformed differently
         truth = read(markers[t]["images"], rows_t)

@@ -261,3 +261,87 @@ def test_listing_must_name_an_importable_function():
     g.node("y", "m:f", grid={"s": Listing("no_such_module_here:f", {})})
     with pytest.raises(PipelineError, match=r"^node 'y' grid 's': cannot import 'no_such_module_here:f': "):
         g.expand({})
+
+
+# -- Wiring params, indexed templates, deferred listing errors ------------------------------
+
+WIRER = '''
+class Missing(ValueError):
+    user_error = True
+
+def where(mode):
+    """Which node holds each sensor's data, and each one's calibration ("" none)."""
+    if mode == "real":
+        return {"a": "ingest[sensor=a]", "b": "ingest[sensor=b]"}
+    return {"a": "render[skin=a]", "b": "render[skin=b]"}
+
+def calib(mode):
+    return {"a": "", "b": "cal[sensor=b]"} if mode == "real" else {"a": "cal[sensor=a]", "b": "cal[sensor=b]"}
+
+def node_of(mode):
+    return {"node": "ingest", "var": "sensor"} if mode == "real" else {"node": "render", "var": "skin"}
+
+def members(mode, need):
+    if need > 2:
+        raise Missing(f"the set has 2 sensors, not {need}")
+    return ["a", "b"]
+'''
+
+
+@pytest.fixture()
+def wired(tmp_path, monkeypatch):
+    from pipeline.graph import Listing, Wiring
+    (tmp_path / "wirer_mod.py").write_text(WIRER)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    mode = {"mode": "data.mode"}
+    g = Graph()
+    g.node("render", "m:r", grid={"skin": ["a", "b"]})
+    g.node("ingest", "m:i", grid={"sensor": ["a", "b"]})
+    g.node("cal", "m:c", grid={"sensor": ["a", "b"]})
+    g.node("fit", "m:f", inputs={"seq": "{where[{skin}]}", "calibration": "{calib[{skin}]}"},
+           params={"lr": "lr", "where": Wiring("wirer_mod:where", mode), "calib": Wiring("wirer_mod:calib", mode)},
+           grid={"skin": ["a", "b"]})
+    g.node("study", "m:s", inputs={"seqs": "{src[node]}[{src[var]}=@members]", "fits": "fit[*]"},
+           params={"src": Wiring("wirer_mod:node_of", mode),
+                   "members": Listing("wirer_mod:members", {"mode": "data.mode", "need": "need"})})
+    g.node("other", "m:o", inputs={"fit": "fit[skin=a]"})
+    return g
+
+
+def test_wiring_chooses_inputs_and_stays_out_of_params(wired):
+    """A Wiring param picks the inputs ("{where[{skin}]}" indexes it by the instance's skin;
+    "" leaves an input out); the function and the cache key see only the chosen inputs."""
+    sim = wired.expand({"data": {"mode": "sim"}, "lr": 0.1, "need": 2})
+    real = wired.expand({"data": {"mode": "real"}, "lr": 0.1, "need": 2})
+    assert sim["fit[skin=b]"].inputs == {"seq": "render[skin=b]", "calibration": "cal[sensor=b]"}
+    assert real["fit[skin=b]"].inputs == {"seq": "ingest[sensor=b]", "calibration": "cal[sensor=b]"}
+    assert real["fit[skin=a]"].inputs == {"seq": "ingest[sensor=a]"}                 # no calibration
+    assert sim["fit[skin=a]"].params == real["fit[skin=a]"].params == {"lr": 0.1}
+    assert sim["fit[skin=a]"].param_keys == ["lr", "data.mode"]                     # dvc still sees the mode
+    assert sim["study"].inputs["seqs"] == {"a": "render[skin=a]", "b": "render[skin=b]"}
+    assert real["study"].inputs["seqs"] == {"a": "ingest[sensor=a]", "b": "ingest[sensor=b]"}
+    assert real["study"].params == {"members": ["a", "b"]}
+    assert wired.closure(real, ["fit[skin=a]"]) == ["ingest[sensor=a]", "fit[skin=a]"]
+
+
+def test_a_listing_param_error_waits_for_a_run_that_needs_its_node(wired):
+    """A Listing param's user error does not stop the plan: the rest expands and runs, the
+    default targets leave the node (and what needs it) out, and naming it is the error."""
+    inst = wired.expand({"data": {"mode": "real"}, "lr": 0.1, "need": 3})
+    assert inst["study"].problem == "the set has 2 sensors, not 3" and inst["study"].inputs == {}
+    unused = ["render[skin=a]", "render[skin=b]", "cal[sensor=a]"]      # the real data reads none of these
+    assert wired.select(inst, None) == unused + ["fit[skin=b]", "other"]
+    assert wired.closure(inst, ["other"]) == ["ingest[sensor=a]", "fit[skin=a]", "other"]
+    with pytest.raises(PipelineError, match=r"^node study: the set has 2 sensors, not 3$"):
+        wired.closure(inst, wired.select(inst, ["study"]))
+    assert wired.select(wired.expand({"data": {"mode": "real"}, "lr": 0.1, "need": 2}), None) == unused + [
+        "study", "other"]
+
+
+def test_an_indexed_template_names_an_unknown_variable():
+    g = Graph()
+    g.node("up", "m:u", grid={"s": ["a"]})
+    g.node("down", "m:d", inputs={"x": "{m[{nope}]}"}, params={"m": "m"}, grid={"s": ["a"]})
+    with pytest.raises(PipelineError, match=r"node 'down\[s=a\]' input 'x': template '\{m\[\{nope\}\]\}' uses a "
+                                            r"variable or key not in its grid \['s'\] or params"):
+        g.expand({"m": {"a": "up[s=a]"}})

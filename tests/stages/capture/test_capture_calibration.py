@@ -110,13 +110,15 @@ def test_calibration_staging_is_its_own_file_and_is_removed(ci, calibration_inpu
 def test_transfers_compensate_with_a_captured_calibration_of_their_sensor(captured, twin):
     from stages.force.fit import calibrations as _calibrations
     arrays, _ = captured
-    tactip = {"force": np.zeros((2, 3))}
-    specs = ({"sensor": "tactip"}, {"sensor": SENSOR})
-    chosen, which = _calibrations((tactip, twin), specs, {SENSOR: arrays})
+    tactip = {"force": np.zeros((2, 3)), "attrs": {"sensor": "tactip"}}
+    assert attrs_of(twin)["sensor"] == SENSOR            # calibrate names its body: the lookup's key
+    chosen, which = _calibrations((tactip, twin), {SENSOR: arrays})
     assert chosen[0] is tactip and chosen[1] is arrays
     assert which == {"target": f"capture_calibration[sensor={SENSOR}]"}
-    chosen, which = _calibrations((tactip, twin), specs, {})
+    chosen, which = _calibrations((tactip, twin), {})
     assert chosen == (tactip, twin) and which == {}
+    chosen, which = _calibrations((None, None), {SENSOR: arrays})    # the authors' homo set: none
+    assert chosen == (None, None) and which == {}
 
 
 def test_the_graph_gathers_captured_calibrations_into_every_transfer():

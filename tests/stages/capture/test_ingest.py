@@ -59,7 +59,8 @@ def test_homo_frames_forces_torques_and_pairs_are_the_files(dataset):
     root, truth = dataset
     art, final = run(root, "Array-I")
     contacts = ordered(truth["Array-I"])
-    assert final["indenters"] == ["cone", "sphere_s", "wave"] and final["attrs"]["frames"] == len(art["phase"])
+    assert final["indenters"] == list(ALL_INDENTERS) and final["attrs"]["frames"] == len(art["phase"])
+    assert [final["indenters"][i] for i in np.unique(art["indenter_id"])] == ["cone", "sphere_s", "wave"]
     row = 0
     for cid, c in enumerate(contacts):
         rows = slice(row, row + c["n"])
@@ -122,7 +123,7 @@ def test_hetero_depth_is_the_authors_normalisation(dataset):
 def test_modulus_crlf_files_and_spelling_variants(dataset):
     root, truth = dataset
     art, final = run(root, "ratio_6", size=(48, 64), modulus_depth_mm=1.5)     # CRLF everywhere
-    assert final["indenters"] == ["cone", "sphere_s", "wave"]                    # folder sphere-s
+    assert [final["indenters"][i] for i in np.unique(art["indenter_id"])] == ["cone", "sphere_s", "wave"]   # sphere-s
     z = np.concatenate([np.r_[c["inc"], c["dec"]] for c in ordered(truth["ratio_6"])])
     np.testing.assert_array_equal(art["normalised_depth"], z.astype(np.float32))
     np.testing.assert_array_equal(art["depth"], (z * 1.5).astype(np.float32))
@@ -152,6 +153,7 @@ def test_pairs_by_motion_position_never_by_frame_number(dataset):
     # the twins' pairing (equal `frame` keys) pairs the same frames
     frames, rows = paired_table({"A": a, "B": b}, ["A", "B"], ["cone", "sphere_s", "wave"])
     assert sorted(zip(rows[0].tolist(), rows[1].tolist())) == sorted(zip(ra.tolist(), rb.tolist()))
+    assert (np.diff(rows, axis=1) > 0).all()        # in key order, each sensor's rows in row order
     assert not set(a["frame"][~a["paired"]].tolist()) & set(b["frame"].tolist())
 
 
@@ -161,6 +163,21 @@ def test_a_contact_without_forces_is_left_out_as_the_authors_do(dataset, tmp_pat
     shutil.rmtree(root / "training/homo/force/Array-I/wave/10")
     art, final = run(root, "Array-I", size=(48, 64))
     assert final["attrs"]["skipped"] == ["wave/10"] and final["attrs"]["contacts"] == 5
+
+
+def test_indenters_of_a_lab_follow_the_papers_and_keys_grow_with_the_rows(tmp_path):
+    """`indenters` lists every paper indenter (a split naming one the sensor lacks selects
+    nothing), then a lab's own; paired frame keys grow with the rows, 0000 first."""
+    from stages.capture.ingest import indenter_code
+    training = tmp_path / "training"
+    fx.write_sensor(training, "homo", "Array-I", ["wave", "star", "knob"], [3, 1])
+    art, final = run(tmp_path, "Array-I", size=(48, 64))
+    extra = sorted(["star", "knob"], key=indenter_code)
+    assert final["indenters"] == [*ALL_INDENTERS, *extra]
+    assert [final["indenters"][i] for i in dict.fromkeys(art["indenter_id"].tolist())] == ["wave", *extra]
+    keys = art["frame"][art["paired"]]
+    assert (np.diff(keys) > 0).all() and len(keys) == 3 * 2 * 4
+    assert (keys % 10)[:4].tolist() == [0, 1, 2, 3]                  # 0000, then the three motion ends
 
 
 def test_npy_csv_last_files_are_read_first(dataset, tmp_path):
