@@ -211,6 +211,21 @@ def force_sensors(sensors: Mapping, studies: Mapping, data_source="twin", data_r
     return active(sensors, studies, FORCE_STUDIES, data_source, data_root)
 
 
+def m2m_groups(sensors: Mapping, studies: Mapping, data_source="twin", data_root=None) -> list[list[str]]:
+    """The sensors M2M's fine-tune pairs frames among: one group of all the force studies'
+    sensors on the twin, whose sensors all follow one trajectory ([] says so); on the authors'
+    data, one group per set, whose sensors were collected along the same contacts (the authors
+    fine-tune one M2M per set: a contact number of one set is no location of another's)."""
+    if not _authors(data_source):
+        return []
+    out = []
+    for study in FORCE_STUDIES:
+        group = [n for n in members(sensors, studies, study, data_source, data_root) if not any(n in g for g in out)]
+        if len(group) > 1:
+            out.append(group)
+    return out
+
+
 # -- which node holds a sensor's data: the graph's Wiring params ------------------------------
 
 def sequences(sensors: Mapping, studies: Mapping, data_source="twin", data_root=None) -> dict[str, str]:

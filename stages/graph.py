@@ -132,8 +132,8 @@ GRAPH.node("m2m_sim", "stages.m2m.fit:pretrain",
            description="M2M generator trained from scratch on the 12 simulation patterns")
 GRAPH.node("m2m", "stages.m2m.fit:finetune",
            inputs={"base": "m2m_sim", "markers": _SEQS_GATHER % "skins"},
-           params={**_SEQS, "skins": _cat("force_sensors"), "train_indenters": "splits.m2m_indenters",
-                   "pairs_per_skin": "m2m.finetune.pairs_per_skin", "steps": "m2m.finetune.steps",
+           params={**_SEQS, "skins": _cat("force_sensors"), "groups": _cat("m2m_groups"),
+                   "train_indenters": "splits.m2m_indenters", "pairs_per_skin": "m2m.finetune.pairs_per_skin", "steps": "m2m.finetune.steps",
                    "batch_size": "m2m.finetune.batch_size", "lr": "m2m.finetune.lr",
                    "seed": "m2m.finetune.seed", "change_share": "m2m.finetune.change_share"},
            description="M2M fine-tuned to the force studies' sensors with a few location-paired frames each")

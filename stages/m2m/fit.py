@@ -67,14 +67,27 @@ def _distinct_references(skins: Sequence[str], refs: np.ndarray, title: str) -> 
 
 
 def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_size, lr, seed,
-           change_share, title, checkpoint=None):
+           change_share, title, checkpoint=None, groups=()):
     from stages.m2m.model import Translator, state_arrays
-    from stages.m2m.train import PairBatches, fit
-    frames, rows = paired_table(markers, skins, train_indenters, per_skin)
-    images, refs = _paired_arrays(markers, skins, rows, config["size"])
-    _distinct_references(skins, refs, title)
+    from stages.m2m.train import GroupBatches, PairBatches, fit
+    if groups:          # frames are paired within each group only (GroupBatches)
+        missing = sorted(set(skins) - {s for g in groups for s in g})
+        if missing:
+            raise ValueError(f"{title}: skins {missing} are in no group of {groups}")
+        parts = []
+        for group in groups:
+            _, group_rows = paired_table(markers, group, train_indenters, per_skin)
+            parts.append((group, *_paired_arrays(markers, group, group_rows, config["size"])))
+        _distinct_references([s for g, _, _ in parts for s in g], np.concatenate([r for _, _, r in parts]), title)
+        frames = np.zeros(sum(im.shape[1] for _, im, _ in parts))
+        images, refs = parts[0][1], parts[0][2]           # the samples figure shows the first group
+    else:
+        frames, rows = paired_table(markers, skins, train_indenters, per_skin)
+        images, refs = _paired_arrays(markers, skins, rows, config["size"])
+        _distinct_references(skins, refs, title)
     with torch_threads():
-        batches = PairBatches(images, refs, seed)
+        batches = (GroupBatches([PairBatches(im, rf, seed + k) for k, (_, im, rf) in enumerate(parts)],
+                                [len(g) for g, _, _ in parts], seed) if groups else PairBatches(images, refs, seed))
         hist = fit(net, config, batches, steps=int(steps), batch_size=int(batch_size), lr=float(lr),
                    seed=int(seed), change_share=float(change_share), progress=title, checkpoint=checkpoint)
         weights = state_arrays(net)
@@ -116,15 +129,19 @@ def pretrain(*, markers: Mapping, skins: list[str], train_indenters: list[str], 
 
 def finetune(*, base, markers: Mapping, skins: list[str], train_indenters: list[str],
              pairs_per_skin: int, steps: int, batch_size: int, lr: float, seed: int,
-             change_share: float = 0.0, checkpoint: str | None = None) -> dict:
+             change_share: float = 0.0, groups: list | None = None, checkpoint: str | None = None) -> dict:
     """Node m2m: `base` (a pretrained model) fine-tuned on `pairs_per_skin` location-paired
-    frames shared by `skins`, evenly spread over the training indenters' frames.
+    frames shared by `skins`, evenly spread over the training indenters' frames.  `groups`
+    (lists of skins): frames are paired within each group alone, a step's examples all drawn
+    from one group (the authors' sets, each collected along its own contacts); empty: one group.
     checkpoint: as pretrain's."""
     from stages.m2m.model import build, weights_of
     config = attrs_of(base)["config"]
     net = build(config, weights_of(base))
     out = _train(net, config, markers, skins, train_indenters, int(pairs_per_skin), steps, batch_size,
-                 lr, seed, change_share, "m2m finetune", checkpoint)
+                 lr, seed, change_share, "m2m finetune", checkpoint, [list(g) for g in groups or ()])
+    if groups:
+        out["attrs"]["groups"] = [list(g) for g in groups]
     out["attrs"]["base_skins"] = list(attrs_of(base).get("skins", []))
     out["attrs"]["pairs_per_skin"] = int(pairs_per_skin)
     return out

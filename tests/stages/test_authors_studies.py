@@ -60,6 +60,10 @@ def test_authors_members_pairs_and_groups(folders):
     assert C.by_source(sensors, studies, "render", **data) == patterns
     assert C.bodies(sensors, studies, **data) == ["sim"] and C.bodies(sensors, studies, True, **data) == []
     assert len(C.transfer_pairs(sensors, studies, **data)) == 2 + 2 + 2
+    # M2M pairs frames within a set only: a contact number of one set is no location of another's
+    assert C.m2m_groups(sensors, studies, **data) == [["Array-I", "Array-II"], ["ratio_6", "ratio_8"],
+                                                     ["gelsight", "tactip"]]
+    assert C.m2m_groups(sensors, studies) == []
     seq = C.sequences(sensors, studies, **data)
     assert seq["Array1"] == "markers[skin=Array1]" and seq["ratio_6"] == "ingest[sensor=ratio_6]"
     assert C.sequence_node(sensors, studies, **data) == {"node": "ingest", "var": "sensor"}
