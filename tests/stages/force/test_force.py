@@ -157,7 +157,7 @@ def test_mirror_group_of_a_reference():
     assert mirror_group(_dot_grid([4, 11, 18, 25], [6, 13, 18, 25]), 16) == ("y",)   # shifted in x
     assert mirror_group(_dot_grid([4, 11, 18, 25], [3, 10, 17, 24]), 16) == ()
     assert mirror_group(np.zeros((32, 32), np.uint8), 16) == ()
-    with pytest.raises(ValueError, match="mirror_read 'both' is not one of"):
+    with pytest.raises(InputError, match="force model mirror_read must be one of auto, none, got 'both'"):
         model_config({"mirror_read": "both"})
 
 
