@@ -1,5 +1,6 @@
 """Write docs/results.md from a store: the summary node's tables (the studies on the test split
-beside the paper's figures, the paper's targets) and, where it has run, the ablation's.
+beside the paper's figures, the paper's targets) and, where it has run, the ablation's; and the
+README's results table (between its `results` markers): each study's normal-force MAE per method.
 
     python scripts/results.py [--store artifacts] [--profile NAME] [--out docs/results.md]
 
@@ -16,10 +17,37 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from store_lookup import REPO, artifact_path  # noqa: E402
 
 
+BEGIN, END = "<!-- results: python scripts/results.py -->", "<!-- /results -->"
+
+
 def _markdown(path: str) -> str:
     from pipeline.artifact import Artifact
     with Artifact(path) as art:
         return str(art.attrs["markdown"])
+
+
+def readme_table(summary_path: str) -> str:
+    """Each force study's first row (normal-force MAE, mean over its pairs) as one table."""
+    from pipeline.artifact import Artifact
+    with Artifact(summary_path) as art:
+        tables = art.attrs["report_tables"]
+    rows = []
+    for t in tables:
+        if t["header"][:2] == ["test split", "paper"]:
+            study = t["title"].split(" ")[0]
+            rows.append([f"{study}: {t['rows'][0][0]}", *t["rows"][0][1:]])
+    header = ["study (test split)", *tables[0]["header"][1:]] if rows else []
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def replace_block(text: str, block: str) -> str:
+    """`text` with what lies between the results markers replaced by `block`."""
+    if BEGIN not in text or END not in text:
+        sys.exit(f"results: README.md has no {BEGIN} ... {END} block")
+    head, rest = text.split(BEGIN, 1)
+    return head + BEGIN + "\n" + block + "\n" + END + rest.split(END, 1)[1]
 
 
 def main() -> None:
@@ -27,9 +55,11 @@ def main() -> None:
     ap.add_argument("--store", default="artifacts")
     ap.add_argument("--profile", default=None)
     ap.add_argument("--out", default=str(REPO / "docs" / "results.md"))
+    ap.add_argument("--readme", default=str(REPO / "README.md"), help="'' leaves the README alone")
     args = ap.parse_args()
     profile = ("--profile", args.profile) if args.profile else ()
-    parts = [_markdown(artifact_path(args.store, "summary", "results", profile=args.profile))]
+    summary_path = artifact_path(args.store, "summary", "results", profile=args.profile)
+    parts = [_markdown(summary_path)]
     got = subprocess.run([sys.executable, "-m", "pipeline", "get", "ablation", "--store", args.store, *profile],
                          cwd=REPO, capture_output=True, text=True)
     ablation = got.returncode == 0
@@ -45,6 +75,10 @@ def main() -> None:
             "every choice.  MAE in N.\n\n" + "\n".join(parts))
     Path(args.out).write_text(text)
     print(args.out)
+    if args.readme:
+        readme = Path(args.readme)
+        readme.write_text(replace_block(readme.read_text(), readme_table(summary_path)))
+        print(readme)
 
 
 if __name__ == "__main__":

@@ -8,7 +8,7 @@ from pipeline import Graph, Listing, Wiring
 GRAPH = Graph()
 
 # which sensors each node runs on, from the sensor catalogue (params `sensors`, `studies`), and
-# with `data.source: authors` the authors' released sets under data.root (docs/authors-dataset.md)
+# with `data.source: authors` the authors' released sets under data.root (README, "The authors' dataset")
 _CAT = {"sensors": "sensors", "studies": "studies", "data_source": "data.source", "data_root": "data.root"}
 
 

@@ -30,6 +30,19 @@ def test_dvc_yaml_in_sync():
     assert (ROOT / "dvc.yaml").stat().st_size <= 60_000        # a node per stage: readable
 
 
+def test_the_readme_is_a_manual_that_opens_with_the_two_commands():
+    import re
+    text = (ROOT / "README.md").read_text()
+    assert len(text.splitlines()) <= 400
+    block = text.split("```bash\n", 1)[1].split("```", 1)[0].splitlines()
+    assert [line.split()[:2] for line in block] == [["make", "run"], ["make", "test"]]
+    for path in ["README.md", "params.yaml", *map(str, (ROOT / "params").glob("*.yaml"))]:
+        dated = re.findall(r"\b20\d\d-\d\d-\d\d\b", (ROOT / path).read_text())
+        assert not dated, f"{path} keeps a diary: {dated[:3]}"
+    for image in re.findall(r"!\[[^]]*\]\(([^)]+)\)", text):
+        assert (ROOT / image).is_file(), image
+
+
 @pytest.mark.parametrize("profile", ["default", "ci", "paper", "allpairs"])
 def test_profiles_load(profile):
     project = find_project(ROOT)
