@@ -391,7 +391,15 @@ def cmd_metrics(ctx: Context) -> int:
 
 def cmd_report(ctx: Context) -> int:
     from pipeline import report
-    planned = ctx.scheduler().plan()
+    sched = ctx.scheduler()
+    planned = sched.plan()
+    # an on-demand node (the ablation) is shown once it is built and current
+    have = {p.name for p in planned}
+    for name, inst in sched.instances.items():
+        if inst.node.on_demand and inst.problem is None and name not in have:
+            extra = [p for p in sched.plan([name]) if p.name == name and p.status == "cached"]
+            planned += extra
+            have.update(p.name for p in extra)
     _other_profile(ctx, planned)
     out = ctx.args.out or ctx.project.root / "report"
     print(report.write(planned, ctx.store, out, info={"profile": ctx.args.profile or "default"}))

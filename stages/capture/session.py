@@ -494,6 +494,9 @@ def capture_calibration(*, trajectory: Mapping, sensor: str, spec: Mapping, devi
     missing = [k for k in ("max_depth_mm", "pad_mm") if k not in spec]
     if missing:
         raise InputError(f"capture_calibration[{sensor}]: its sensors entry lacks {', '.join(missing)}")
+    if spec.get("body", sensor) != sensor:   # the transfers look a calibration up by the gel's body
+        raise InputError(f"capture_calibration[{sensor}]: a calibration belongs to a body; list "
+                         f"{spec['body']} (the body {sensor} rides on) in capture.calibration.sensors")
     missing = [k for k in ("depth", "indenters", "indenter_id", "contact_id") if k not in trajectory]
     if missing:
         raise InputError(f"capture_calibration[{sensor}]: the trajectory lacks {', '.join(missing)}")

@@ -277,7 +277,11 @@ def marker_set(patterns: Mapping, name: str) -> MarkerSet:
         parts = {k: _get(patterns, f"markers/{name}/{k}")
                  for k in ("centers", "axes", "angles", "pad_size_mm")}
     except KeyError:
-        raise KeyError(f"pattern {name!r} is not in the patterns artifact") from None
+        from stages.common import InputError
+        drawn = ([str(n.decode() if isinstance(n, bytes) else n) for n in np.asarray(patterns["names"])]
+                 if "names" in patterns else sorted({k.split("/")[1] for k in patterns if k.startswith("markers/")}))
+        raise InputError(f"sensors: pattern {name!r} is not drawn (stages.markers.patterns.reference_set "
+                         f"draws {', '.join(drawn)})") from None
     return MarkerSet(parts["centers"], parts["axes"], parts["angles"], tuple(parts["pad_size_mm"]))
 
 

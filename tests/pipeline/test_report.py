@@ -174,3 +174,24 @@ def test_report_page_in_headless_chromium(toy, tmp_path):
         dest.mkdir(parents=True, exist_ok=True)
         shot = Path(shutil.copy(shot, dest / "report-screenshot.png"))
     print(f"report screenshot: {shot}")
+
+
+def test_an_on_demand_node_is_shown_once_built(toy, tmp_path):
+    """An on-demand node (like the ablation) is left out of `pipeline run`; once run by name,
+    the report shows its table, and it drops out again when its params change."""
+    graph = toy / "toy" / "graph.py"
+    graph.write_text(graph.read_text() + '\nGRAPH.node("extra", "toy.extra:extra", inputs={"summary": "summary"},'
+                     ' params={"scale": "scale"}, on_demand=True)\n')
+    (toy / "toy" / "extra.py").write_text(
+        'def extra(summary, scale):\n'
+        '    return {"attrs": {"report_tables": [{"title": "extra table", "header": ["a", "b"],'
+        ' "rows": [["x", scale]]}]}, "metrics": {"extra/x": scale}}\n')
+    out = tmp_path / "report"
+    run_json(toy)
+    cli(toy, "report", "--out", str(out))
+    assert "extra table" not in (out / "index.html").read_text()
+    run_json(toy, "extra")
+    cli(toy, "report", "--out", str(out))
+    assert "extra table" in (out / "index.html").read_text()
+    cli(toy, "report", "--out", str(out), "-p", "scale=5.0")
+    assert "extra table" not in (out / "index.html").read_text()

@@ -13,7 +13,7 @@ import pytest
 from stages.markers.looks import LOOKS
 from stages.markers.mitsuba_backend import llvm_usable, llvm_version, resolve_backend
 from stages.markers.patterns import gelsight_pattern, pattern, rasterize, tactip_pattern
-from stages.common import LABEL_KEYS
+from stages.common import LABEL_KEYS, InputError
 from stages.markers.render import (Renderer, camera_distance, camera_fov_x, marker_set,
                                    render_frames, render_sequence)
 from tests.helpers import drain
@@ -348,7 +348,7 @@ def test_node_camera_look_outputs_raw_and_references():
     again, _ = drain(render_sequence(deform=deform, patterns=flat, skin="gelsight-A-I", spec=spec,
                                      size=[48, 40], spp=1, backend="auto"))
     assert np.array_equal(again[0]["raw"], chunks[0]["raw"])             # seeded noise
-    with pytest.raises(KeyError, match="Array9"):
+    with pytest.raises(InputError, match=r"pattern 'Array9' is not drawn \(.*gelsight-A-I"):
         next(render_sequence(deform=deform, patterns=flat, skin="s", spec={**spec, "pattern": "Array9"},
                              size=[8, 8], spp=1, backend="auto"))
     assert marker_set(flat, "gelsight-A-I").pad_size_mm == (25.0, 25.0)
