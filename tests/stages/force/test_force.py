@@ -366,8 +366,8 @@ def test_fit_transfer_identity_copies_genforce(nodes_out):
 
 def test_genforce_plus_is_genforce_comp_with_each_addition_applied(nodes_out, skins):
     """genforce_plus's stored weights are plus.apply of genforce_comp on the paired frames, bit for
-    bit; each addition leaves its mark: the mirror read in the config, moved batch norms, the
-    linear Fz read, and shear and Fz gains that equal a hand least-squares fit."""
+    bit; each addition leaves its mark: the mirror read in the config and the linear Fz read;
+    the encoder's weights and batch norms are genforce_comp's."""
     _, _, stiffer = nodes_out
     info = stiffer["attrs"]["plus"]
     assert info["additions"] == list(plus.ADDITIONS) and info["pairs"] == 30     # 6 contacts x 5 paired
@@ -375,7 +375,8 @@ def test_genforce_plus_is_genforce_comp_with_each_addition_applied(nodes_out, sk
     assert comp.config["mirror_read"] == "none" and got.config["mirror_read"] == "auto"
     assert info["mirror_shear"] == {"mirrors": []}              # a blank reference has no pattern to mirror
     assert float(got.fz_weight) == plus.LINEAR_FZ_WEIGHT and info["linear_fz"]["weight"] == 0.5
-    assert not torch.equal(got.encoder.stem[1].running_mean, comp.encoder.stem[1].running_mean)
+    assert float(comp.fz_weight) == 0.0
+    assert torch.equal(got.encoder.stem[1].running_mean, comp.encoder.stem[1].running_mean)
     from stages.force.fit import compensated_labels
     paired = plus.paired_frames(skins["A"], skins["A_dim"], compensated_labels(skins["A"], stiffer["attrs"]["curves"]),
                                 ["sphere", "prism"], 0)
@@ -383,42 +384,22 @@ def test_genforce_plus_is_genforce_comp_with_each_addition_applied(nodes_out, sk
     for k, v in to_arrays(again).items():
         np.testing.assert_array_equal(v, stiffer["genforce_plus"][k], err_msg=k)
     assert again_info == {k: v for k, v in info.items() if k not in ("additions", "pairs")}
-    # the shear gain: least squares from the model's shear (after mirror, BN, linear Fz) to the labels
-    before_gain, _ = plus.apply(comp, paired, ["mirror_shear", "paired_bn", "linear_fz"])
-    pred = predict_rows(before_gain, skins["A_dim"], paired.rows[1])[:, :2].astype(float)
-    want = [np.clip((pred[:, a] * paired.labels[:, a]).sum() / (pred[:, a] ** 2).sum(), *plus.GAIN_RANGE)
-            for a in (0, 1)]
-    np.testing.assert_allclose(info["shear_gain"]["gain"], want, rtol=1e-5)
     with pytest.raises(InputError, match=r"plus.additions \['ensemble'\] are not among"):
         plus.check_additions(["ensemble"], "t")
     with pytest.raises(InputError, match="names one twice"):
-        plus.check_additions(["fz_gain", "fz_gain"], "t")
+        plus.check_additions(["linear_fz", "linear_fz"], "t")
+    with pytest.raises(ValueError, match="1 location-paired frames; the additions need 2"):
+        plus.apply(comp, plus.Paired(skins["A"], skins["A"], np.array([[3], [4]]), np.zeros((1, 3)), [],
+                                     np.zeros((0, 3))), ["linear_fz"])
 
 
-def test_scale_axes_and_the_gains(trained):
-    """scale_axes multiplies a model's output per axis (through its force range); fz_gain is the
-    least-squares gain from the target's Fz reading to the translations' at the paired frames,
-    clipped to GAIN_RANGE."""
+def test_predict_rows_reads_each_row_in_its_whole_contact(trained):
     model, _, images, _, _ = trained
     art = {"images": np.concatenate(images), "reference": REF,
            "contact_id": np.repeat(np.arange(len(images)), [len(x) for x in images])}
     rows = np.array([40, 3, 17, 90, 91, 60])                            # any order, several contacts
     full = predict_contacts(model, art["images"], art["contact_id"], REF)
     np.testing.assert_allclose(predict_rows(model, art, rows), full[rows], rtol=1e-5, atol=1e-6)
-    copy = from_arrays(to_arrays(model), model.config)
-    plus.scale_axes(copy, (2.0, 0.5, 1.5))
-    np.testing.assert_allclose(predict_contacts(copy, art["images"], art["contact_id"], REF),
-                               full * [2.0, 0.5, 1.5], rtol=1e-5, atol=1e-5)
-    order = np.argsort(np.abs(full[:, 2]))
-    weak, strong = order[:6], order[-6:]                       # the target reads these low, those high
-    labels = np.zeros((6, 3), np.float32)
-    paired = plus.Paired(art, art, np.stack([strong, weak]), labels, [], np.zeros((0, 3)))
-    _, info = plus.apply(model, paired, ["fz_gain"])
-    raw = float(np.sum(full[weak, 2] * full[strong, 2]) / np.sum(full[weak, 2] ** 2))
-    assert info["fz_gain"]["raw"] == pytest.approx(raw, rel=1e-4)
-    assert info["fz_gain"]["gain"] == pytest.approx(min(max(raw, 0.25), 4.0), rel=1e-4)
-    with pytest.raises(ValueError, match="1 location-paired frames; the additions need 2"):
-        plus.apply(model, plus.Paired(art, art, np.array([[3], [4]]), labels[:1], [], labels[:0]), ["fz_gain"])
 
 
 def test_transfer_seed_reproduces_the_transfers_comp_model_at_its_seed(nodes_out, skins, tiny_config):
@@ -487,17 +468,17 @@ def test_the_default_splits_are_disjoint_and_test_is_the_authors_unseen_set():
 def test_ablation_arithmetic_on_a_stub_study():
     """delta = mean over seeds of (the variant without it - all); spread = sd over seeds of all,
     each seed's figure the mean over the study's pairs."""
-    adds = ["paired_bn", "fz_gain"]
-    assert ablation_variants(adds) == {"all": adds, "none": [], "-paired_bn": ["fz_gain"],
-                                       "-fz_gain": ["paired_bn"]}
+    adds = ["mirror_shear", "linear_fz"]
+    assert ablation_variants(adds) == {"all": adds, "none": [], "-mirror_shear": ["linear_fz"],
+                                       "-linear_fz": ["mirror_shear"]}
     scores = {"all": [[1.0, 3.0], [2.0, 2.0], [1.5, 3.5]],          # per seed: 2.0, 2.0, 2.5
               "none": [[3.0, 3.0], [3.0, 3.0], [3.0, 3.0]],
-              "-paired_bn": [[1.5, 3.5], [2.5, 2.5], [2.0, 4.0]],   # +0.5 each: delta 0.5
-              "-fz_gain": [[1.0, 3.0], [2.0, 2.0], [1.0, 3.0]]}     # 2, 2, 2: delta -1/6
+              "-mirror_shear": [[1.5, 3.5], [2.5, 2.5], [2.0, 4.0]],   # +0.5 each: delta 0.5
+              "-linear_fz": [[1.0, 3.0], [2.0, 2.0], [1.0, 3.0]]}      # 2, 2, 2: delta -1/6
     m = ablation_metrics("s", scores, adds)
     assert m["ablation/s/seed_spread/mae_total"] == pytest.approx(np.std([2.0, 2.0, 2.5], ddof=1))
-    assert m["ablation/s/paired_bn/delta_mae_total"] == pytest.approx(0.5)
-    assert m["ablation/s/fz_gain/delta_mae_total"] == pytest.approx(-1 / 6)
+    assert m["ablation/s/mirror_shear/delta_mae_total"] == pytest.approx(0.5)
+    assert m["ablation/s/linear_fz/delta_mae_total"] == pytest.approx(-1 / 6)
     assert m["ablation/s/genforce_plus/mae_total"] == pytest.approx(13 / 6)
     assert m["ablation/s/genforce_comp/mae_total"] == pytest.approx(3.0)
     with pytest.raises(ValueError, match="2 seeds; the seed spread needs 3 or more"):
@@ -585,32 +566,6 @@ def test_an_unreadable_or_foreign_force_checkpoint_is_set_aside_or_ignored(skins
         out = _transfer_run(skins, tiny_config, checkpoint=str(path), steps=8)
     assert "resumed_at_step" not in out["timing"]
     _same_node_output(out, whole)
-
-
-# ---------------------------------------------------------------------------- paired alignment
-
-def test_batchnorm_alignment_reads_an_affine_copy_of_the_frames_as_the_frames(trained):
-    """Target frames drawn at half intensity (an affine copy of their translations in the
-    network's input): unaligned, the model reads them far off; aligned on 4 paired contacts,
-    it reads 4 other contacts' dimmed frames as it reads their originals."""
-    from stages.force.align import align_batchnorm
-    model, _, images, _, _ = trained
-    frames = np.concatenate(images)
-    ids = np.repeat(np.arange(8), 14)
-    paired, held = ids < 4, ids >= 4
-    dim = frames // 2                                        # markers at 127 instead of 255
-    before = {k: v.clone() for k, v in model.state_dict().items()}
-    aligned = align_batchnorm(model, frames[paired], dim[paired], REF)
-    for k, v in model.state_dict().items():                 # the model itself is untouched
-        assert torch.equal(v, before[k]), k
-    truth = predict_contacts(model, frames[held], ids[held], REF)
-    off = np.abs(predict_contacts(model, dim[held], ids[held], REF) - truth).max()
-    on = np.abs(predict_contacts(aligned, dim[held], ids[held], REF) - truth).max()
-    assert off > 1.0 and on < 1e-3, (off, on)          # 5.0 N against 1e-4 N here
-    same = align_batchnorm(model, frames[paired], frames[paired], REF)   # no gap: no change
-    np.testing.assert_allclose(predict_contacts(same, frames[held], ids[held], REF), truth, atol=1e-4)
-    with pytest.raises(ValueError, match="paired frames"):
-        align_batchnorm(model, frames[:5], frames[:6], REF)
 
 
 # ---------------------------------------------------------------------------- linear Fz read
