@@ -59,23 +59,29 @@ def _running(pid: int) -> bool:
         return False
 
 
-def test_sigterm_stops_a_process_run_and_its_workers(toy):
-    """SIGTERM to `pipeline run --executor process` (a job scheduler's time limit) ends it as
-    Ctrl-C does, one line and exit 130, and stops the worker computing a node instead of
-    leaving it orphaned; the next run computes that node."""
+def _start_slow_frames(toy, *args: str) -> tuple[subprocess.Popen, int]:
+    """`pipeline run frames --executor process ARGS` with a 5 s frames node, and the pid of the
+    worker computing it, once it has started."""
     f = toy / "toy" / "nodes.py"
     f.write_text(f.read_text().replace(
         "def frames(base, slow):\n",
         "def frames(base, slow):\n    open('frames.pid', 'w').write(str(os.getpid()))\n"))
     run_json(toy, "base")
     proc = subprocess.Popen([sys.executable, "-m", "pipeline", "run", "frames", "--executor", "process",
-                             "-p", "slow=5"], cwd=toy, env=_env(), stdout=subprocess.PIPE,
+                             *args, "-p", "slow=5"], cwd=toy, env=_env(), stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     pid_file = toy / "frames.pid"
     deadline = time.time() + 60
     while not (pid_file.exists() and pid_file.read_text()) and time.time() < deadline:
         time.sleep(0.05)
-    worker = int(pid_file.read_text())
+    return proc, int(pid_file.read_text())
+
+
+def test_sigterm_stops_a_process_run_and_its_workers(toy):
+    """SIGTERM to `pipeline run --executor process` (a job scheduler's time limit) ends it as
+    Ctrl-C does, one line and exit 130, and stops the worker computing a node instead of
+    leaving it orphaned; the next run computes that node."""
+    proc, worker = _start_slow_frames(toy)
     assert worker != proc.pid and _running(worker)
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=30)
@@ -100,21 +106,9 @@ def _children(pid: int) -> list[int]:
 
 
 def test_workers_and_their_resource_tracker_exit_when_the_run_is_killed(toy):
-    """SIGKILL leaves no handler to stop the workers: they used to compute on, orphaned, with
-    multiprocessing's resource tracker (about 350 MB each on the ci profile)."""
-    f = toy / "toy" / "nodes.py"
-    f.write_text(f.read_text().replace(
-        "def frames(base, slow):\n",
-        "def frames(base, slow):\n    open('frames.pid', 'w').write(str(os.getpid()))\n"))
-    run_json(toy, "base")
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline", "run", "frames", "--executor", "process",
-                             "--jobs", "2", "-p", "slow=5"], cwd=toy, env=_env(), stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE)
-    pid_file = toy / "frames.pid"
-    deadline = time.time() + 60
-    while not (pid_file.exists() and pid_file.read_text()) and time.time() < deadline:
-        time.sleep(0.05)
-    worker = int(pid_file.read_text())
+    """SIGKILL leaves no handler to stop the workers: each must notice its parent's death itself,
+    or it computes on, orphaned, with multiprocessing's resource tracker."""
+    proc, worker = _start_slow_frames(toy, "--jobs", "2")
     helpers = _children(proc.pid)
     assert worker in helpers and len(helpers) >= 2, helpers      # the worker and the resource tracker
     proc.kill()
