@@ -395,11 +395,9 @@ def cmd_report(ctx: Context) -> int:
     planned = sched.plan()
     # an on-demand node (the ablation) is shown once it is built and current
     have = {p.name for p in planned}
-    for name, inst in sched.instances.items():
-        if inst.node.on_demand and inst.problem is None and name not in have:
-            extra = [p for p in sched.plan([name]) if p.name == name and p.status == "cached"]
-            planned += extra
-            have.update(p.name for p in extra)
+    extra = [n for n, i in sched.instances.items() if i.node.on_demand and i.problem is None and n not in have]
+    if extra:
+        planned += [p for p in sched.plan(extra) if p.name in extra and p.status == "cached"]
     _other_profile(ctx, planned)
     out = ctx.args.out or ctx.project.root / "report"
     print(report.write(planned, ctx.store, out, info={"profile": ctx.args.profile or "default"}))
