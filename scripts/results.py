@@ -31,12 +31,12 @@ def readme_table(summary_path: str) -> str:
     from pipeline.artifact import Artifact
     with Artifact(summary_path) as art:
         tables = art.attrs["report_tables"]
-    rows = []
+    rows, header = [], []
     for t in tables:
         if t["header"][:2] == ["test split", "paper"]:
             study = t["title"].split(" ")[0]
             rows.append([f"{study}: {t['rows'][0][0]}", *t["rows"][0][1:]])
-    header = ["study (test split)", *tables[0]["header"][1:]] if rows else []
+            header = ["study (test split)", *t["header"][1:]]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
     return "\n".join(lines)
