@@ -148,12 +148,13 @@ GRAPH.node("translate_sim", "stages.m2m.translate:translate_sim_sequence",
 _TRANSFER_PAIRS = _cat("transfer_pairs")
 GRAPH.node("translate", "stages.m2m.translate:translate_sequence",
            inputs={"model": "m2m", "source_markers": "{seq[{source}]}", "target_markers": "{seq[{target}]}"},
-           params={**_EVAL, **_SEQ, "sampler_steps": "m2m.sampler_steps"},
+           params={**_EVAL, **_SEQ, "sampler_steps": "m2m.sampler_steps",
+                   "train_indenters": "splits.train_indenters"},
            grid={"source,target": _TRANSFER_PAIRS},
            description="a calibrated sensor's sequence in an uncalibrated sensor's style")
 GRAPH.node("flow_warp", "stages.m2m.translate:flow_warp_sequence",
            inputs={"source_markers": "{seq[{source}]}", "target_markers": "{seq[{target}]}"},
-           params={**_EVAL, **_SEQ},
+           params={"eval_indenters": "splits.test_indenters", "n_eval": "m2m.n_eval", **_SEQ},
            grid={"source,target": _cat("image_pairs")},
            description="training-free baseline: the source's marker motion warps the target's reference")
 GRAPH.node("features", "stages.m2m.translate:image_features",

@@ -52,6 +52,8 @@ def image_study(*, study: str, pairs: list, features: Mapping, translated: Mappi
         prefix = f"{study}{split}"
         for s, t in pairs:
             for m in methods:
+                if split and m != "before" and f"features{split}" not in sources[m].get(pair_label(s, t), {}):
+                    continue         # a method no choice reads has no validation split (flow_warp)
                 if m == "before":
                     fake = feats[s]
                 else:
@@ -67,8 +69,9 @@ def image_study(*, study: str, pairs: list, features: Mapping, translated: Mappi
                 metrics[f"{prefix}/{s}_{t}/{m}/fid"] = float(fids[m][i, j])
                 metrics[f"{prefix}/{s}_{t}/{m}/kid"] = float(kids[m][i, j])
         for m in methods:
-            metrics[f"{prefix}/mean/{m}/fid"] = float(np.nanmean(fids[m]))
-            metrics[f"{prefix}/mean/{m}/kid"] = float(np.nanmean(kids[m]))
+            if np.isfinite(fids[m]).any():
+                metrics[f"{prefix}/mean/{m}/fid"] = float(np.nanmean(fids[m]))
+                metrics[f"{prefix}/mean/{m}/kid"] = float(np.nanmean(kids[m]))
         if not split:
             test_fids, test_kids, test_feats = fids, kids, feats
     fids, kids, feats = test_fids, test_kids, test_feats

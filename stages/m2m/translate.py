@@ -49,31 +49,39 @@ def _eval_rows(source, eval_indenters, val_indenters, n_eval) -> dict[str, np.nd
     return out
 
 
+def _read(arr, rows: np.ndarray) -> np.ndarray:
+    """arr[rows] (rows sorted, unique), as one slice where they are contiguous."""
+    if rows.size and rows[-1] - rows[0] + 1 == rows.size:
+        return np.asarray(arr[int(rows[0]):int(rows[-1]) + 1])
+    return read_rows(arr, rows)
+
+
 def _stream(source, target, eval_indenters, val_indenters, n_eval, convert, method: str,
-            scored_only: bool = False):
-    """Stream `convert(images) -> images` over the source sequence with its labels (with
-    `scored_only`, over the scored frames alone: a translation only the image metrics read);
-    then features of each split's scored frames (features, eval_frames; features_val,
-    eval_frames_val), the examples figure and timing."""
+            train_indenters: Sequence[str] | None = None):
+    """Stream `convert(images) -> images` with the labels over the rows of the source sequence
+    its readers use: the whole contacts of `train_indenters` (what `transfer` trains on) and
+    each split's scored frames (None: the scored frames alone, a translation only the image
+    metrics read); then features of each split's scored frames (features, eval_frames;
+    features_val, eval_frames_val), the examples figure and timing."""
+    from stages.force.data import contact_runs, run_rows
     from stages.imagemetrics import inception_features
     from tqdm import tqdm
     splits = _eval_rows(source, eval_indenters, val_indenters, n_eval)
     labels = [k for k in LABEL_KEYS if k in source]
-    rows_out = (np.unique(np.concatenate(list(splits.values()))) if scored_only
-                else np.arange(len(source["images"])))
+    trained = run_rows(contact_runs(source, train_indenters)) if train_indenters is not None else []
+    rows_out = np.unique(np.concatenate([np.asarray(trained, int), *splits.values()]))
     n = len(rows_out)
     shape = np.asarray(target["reference"]).shape
     kept = {k: np.zeros((len(rows), *shape), np.uint8) for k, rows in splits.items()}
     t0 = time.perf_counter()
     for i in tqdm(range(0, n, CHUNK), desc=method, disable=None):
         rows = rows_out[i:i + CHUNK]
-        out = convert(read_rows(source["images"], rows) if scored_only else np.asarray(source["images"][i:i + CHUNK]))
+        out = convert(_read(source["images"], rows))
         for k, wanted in splits.items():
             at = np.searchsorted(rows, wanted)
             sel = (at < len(rows)) & (rows[np.minimum(at, len(rows) - 1)] == wanted)
             kept[k][sel] = out[at[sel]]
-        yield {"images": out, **{k: (read_rows(source[k], rows) if scored_only else np.asarray(source[k][i:i + CHUNK]))
-                                 for k in labels}}
+        yield {"images": out, **{k: _read(source[k], rows) for k in labels}}
     seconds = time.perf_counter() - t0
     result = {"reference": np.asarray(target["reference"], np.uint8)}
     for k, rows in splits.items():
@@ -82,6 +90,7 @@ def _stream(source, target, eval_indenters, val_indenters, n_eval, convert, meth
     result.update({
         "figures": {"examples": png(_examples_sheet(source, target, splits[""], kept[""]))},
         "attrs": {"method": method, "frames": int(n), "n_eval": int(len(splits[""])),
+                  "train_indenters": None if train_indenters is None else list(train_indenters),
                   "eval_indenters": list(eval_indenters), "val_indenters": list(val_indenters or ())},
         "timing": {"seconds": round(seconds, 2), "images_per_s": round(n / max(seconds, 1e-9), 1)},
     })
@@ -91,14 +100,15 @@ def _stream(source, target, eval_indenters, val_indenters, n_eval, convert, meth
 
 
 def translate_sequence(*, model, source_markers, target_markers, eval_indenters: list[str], n_eval: int,
-                       val_indenters: Sequence[str] = (), sampler_steps: int = 1, source: str = "",
-                       target: str = "", scored_only: bool = False):
+                       val_indenters: Sequence[str] = (), train_indenters: Sequence[str] | None = None,
+                       sampler_steps: int = 1, source: str = "", target: str = ""):
     """Nodes translate_sim[source,target] / translate[source,target]: the source sequence
     (source_markers, a marker artifact) translated into the target's marker style by the M2M
-    model (chunks: images + the source labels; `scored_only`: the scored frames alone, all the
-    image metrics read); returns the target's reference, features and eval_frames of each
-    split's scored frames, figures/examples and attrs.  source, target: the skins' names (the
-    fan-out's values)."""
+    model, as chunks of images with the source's labels: the whole contacts of
+    `train_indenters` (what `transfer` trains on; None: none) and the scored frames of each
+    split.  Returns the target's reference, features and eval_frames of each split's scored
+    frames, figures/examples and attrs.  source, target: the skins' names (the fan-out's
+    values)."""
     from stages.m2m.model import load_translator
     translator = load_translator(model)
     src_ref = np.asarray(source_markers["reference"], np.uint8)
@@ -106,7 +116,7 @@ def translate_sequence(*, model, source_markers, target_markers, eval_indenters:
     with torch_threads():
         convert = lambda im: translator.translate(im, src_ref, tgt_ref, int(sampler_steps))
         result = yield from _stream(source_markers, target_markers, eval_indenters, val_indenters, n_eval,
-                                    convert, "m2m", scored_only=bool(scored_only))
+                                    convert, "m2m", train_indenters=train_indenters)
     result["attrs"].update(sampler_steps=int(sampler_steps), source=source, target=target)
     return result
 
@@ -114,25 +124,23 @@ def translate_sequence(*, model, source_markers, target_markers, eval_indenters:
 def translate_sim_sequence(**kw):
     """Node translate_sim[source,target]: translate_sequence on the scored frames alone (only
     the sim_m2m study's image metrics read it)."""
-    result = yield from translate_sequence(**kw, scored_only=True)
+    result = yield from translate_sequence(**kw, train_indenters=None)
     return result
 
 
 def flow_warp_sequence(*, source_markers, target_markers, eval_indenters: list[str], n_eval: int,
-                       val_indenters: Sequence[str] = (), source: str = "", target: str = ""):
+                       source: str = "", target: str = ""):
     """Node flow_warp[source,target]: the training-free baseline (stages.m2m.flow) with the
-    same outputs as translate_sequence, on the scored frames alone (only the image metrics read
-    it)."""
+    same outputs as translate_sequence, on the test split's scored frames alone (only the
+    image metrics read it, and no choice is made with it, so it has no validation split)."""
     from stages.m2m.flow import MarkerFlow, warp
     flow = MarkerFlow(np.asarray(source_markers["reference"], np.uint8))
     tgt_ref = np.asarray(target_markers["reference"], np.uint8)
     convert = lambda ims: np.stack([warp(tgt_ref, flow.field(im)) for im in ims])
-    result = yield from _stream(source_markers, target_markers, eval_indenters, val_indenters, n_eval,
-                                convert, "flow_warp", scored_only=True)
+    result = yield from _stream(source_markers, target_markers, eval_indenters, (), n_eval,
+                                convert, "flow_warp")
     result["attrs"].update(source=source, target=target)
     return result
-
-
 def image_features(*, markers, eval_indenters: list[str], n_eval: int, val_indenters: Sequence[str] = (),
                    skin: str = "") -> dict:
     """Node features[skin]: InceptionV3 features (n,2048) of the skin's scored frames of each

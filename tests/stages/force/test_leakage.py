@@ -48,7 +48,8 @@ def _chain(source, target, tiny_config):
     tuned = m2m_fit.finetune(base=base, markers=markers, skins=["S", "T"], train_indenters=TRAIN,
                          pairs_per_skin=6, steps=3, batch_size=4, lr=1e-3, seed=0, change_share=0.1)
     chunks, out = drain(m2m_translate.translate_sequence(model=tuned, source_markers=source, target_markers=target,
-                                               eval_indenters=["torus"], val_indenters=["cone"], n_eval=4))
+                                               eval_indenters=["torus"], val_indenters=["cone"], n_eval=4,
+                                               train_indenters=TRAIN))
     translated = {**out, **{k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]},
                   "indenters": source["indenters"]}
     config = {**tiny_config, "seq_len": 10}

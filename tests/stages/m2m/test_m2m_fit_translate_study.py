@@ -50,8 +50,9 @@ def test_trained_model_beats_before_on_held_out_frames(skins, trained):
     assert fid_before > 100 and fid_m2m < 0.5 * fid_before
     assert kid_m2m < 0.5 * kid_before
     rows = eval_frame_indices(src, ["wave"], N_EVAL)
-    images = np.concatenate([c["images"] for c in chunks])
-    assert _iou(images[rows], tgt["images"][rows]) > _iou(tgt["reference"][None], tgt["images"][rows]) + 0.02
+    images = np.concatenate([c["images"] for c in chunks])         # no training indenters: the scored frames
+    assert len(images) == len(rows)
+    assert _iou(images, tgt["images"][rows]) > _iou(tgt["reference"][None], tgt["images"][rows]) + 0.02
 
 
 def test_trained_model_keeps_the_deformation(skins, trained, monkeypatch):
@@ -111,24 +112,27 @@ def test_motion_errors_only_where_both_skins_deformed_alike(skins, monkeypatch):
 
 
 def test_translation_streams_labels_and_matches_flow_warp_layout(skins, trained, monkeypatch):
-    """translate streams the whole sequence with its labels; flow_warp and translate_sim, which
-    only the image metrics read, the scored frames alone; all score the same frames alike."""
+    """translate streams, with their labels, the whole contacts of the training indenters and
+    the scored frames of both splits; translate_sim the scored frames alone; flow_warp, which
+    no choice reads, the test split's scored frames alone.  All score the same frames alike."""
     monkeypatch.setattr(translate, "CHUNK", 20)
     monkeypatch.setattr("stages.imagemetrics.inception_features",
                         lambda images, **kw: np.repeat(np.mean(images, axis=(1, 2))[:, None], 4, axis=1))
     src, tgt = skins["Circle3"], skins["Array3"]
-    split = dict(eval_indenters=["wave"], val_indenters=["sphere"], n_eval=4)
+    split = dict(eval_indenters=["wave"], n_eval=4)
     rows = eval_frame_indices(src, ["wave"], 4)
     val = eval_frame_indices(src, ["sphere"], 4)               # the validation split's frames too
-    scored = np.unique(np.r_[rows, val])
-    for gen, whole in ((translate.translate_sequence(model=trained, source_markers=src, target_markers=tgt,
-                                                     sampler_steps=2, **split), True),
-                       (translate.translate_sim_sequence(model=trained, source_markers=src, target_markers=tgt,
-                                                         **split), False),
-                       (translate.flow_warp_sequence(source_markers=src, target_markers=tgt, **split), False)):
+    sphere = np.flatnonzero(src["indenter_id"] == 0)           # the training indenter's contacts
+    assert 0 < len(sphere) < len(src["images"]) - len(rows)
+    for gen, kept, has_val in (
+            (translate.translate_sequence(model=trained, source_markers=src, target_markers=tgt, sampler_steps=2,
+                                          val_indenters=["sphere"], train_indenters=["sphere"], **split),
+             np.unique(np.r_[sphere, rows]), True),
+            (translate.translate_sim_sequence(model=trained, source_markers=src, target_markers=tgt,
+                                              val_indenters=["sphere"], **split), np.unique(np.r_[rows, val]), True),
+            (translate.flow_warp_sequence(source_markers=src, target_markers=tgt, **split), rows, False)):
         chunks, out = run_node(gen)
-        kept = np.arange(len(src["images"])) if whole else scored
-        assert [len(c["images"]) for c in chunks] == ([20, 20, 8] if whole else [len(scored)])
+        assert [len(c["images"]) for c in chunks] == [min(20, len(kept) - i) for i in range(0, len(kept), 20)]
         for key in ("force", "depth", "phase", "contact_id", "indenter_id", "paired", "frame"):
             np.testing.assert_array_equal(np.concatenate([c[key] for c in chunks]), src[key][kept])
         images = np.concatenate([c["images"] for c in chunks])
@@ -137,10 +141,12 @@ def test_translation_streams_labels_and_matches_flow_warp_layout(skins, trained,
         at = {int(r): i for i, r in enumerate(kept)}
         np.testing.assert_array_equal(out["eval_frames"], src["frame"][rows])
         np.testing.assert_allclose(out["features"][:, 0], images[[at[r] for r in rows]].mean(axis=(1, 2)))
-        np.testing.assert_array_equal(out["eval_frames_val"], src["frame"][val])
-        np.testing.assert_allclose(out["features_val"][:, 0], images[[at[r] for r in val]].mean(axis=(1, 2)))
+        assert ("eval_frames_val" in out) == ("features_val" in out) == has_val
+        if has_val:
+            np.testing.assert_array_equal(out["eval_frames_val"], src["frame"][val])
+            np.testing.assert_allclose(out["features_val"][:, 0], images[[at[r] for r in val]].mean(axis=(1, 2)))
         assert out["indenters"] == ["sphere", "wave"] and out["attrs"]["n_eval"] == 4
-        assert out["attrs"]["val_indenters"] == ["sphere"] and out["attrs"]["frames"] == len(kept)
+        assert out["attrs"]["frames"] == len(kept)
         assert bytes(out["figures"]["examples"][:4]) == PNG
     assert out["attrs"]["method"] == "flow_warp"
 
