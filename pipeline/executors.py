@@ -18,9 +18,13 @@ from pipeline.errors import PipelineError
 
 
 class InlineExecutor:
+    """submit(fn, task, priority) runs or queues a task; `slots`: how many run at once (the
+    scheduler hands over no more than that, choosing which itself; None: the executor queues
+    every task it is given and orders them by `priority`, higher first)."""
     name = "inline"
+    slots: int | None = 1
 
-    def submit(self, fn: Callable, task: dict):
+    def submit(self, fn: Callable, task: dict, priority: int = 0):
         fut: cf.Future = cf.Future()
         try:
             fut.set_result(fn(task))
@@ -91,11 +95,12 @@ class ProcessExecutor(InlineExecutor):
 
     def __init__(self, jobs: int):
         import multiprocessing as mp
+        self.slots = max(1, int(jobs))
         self.pool = cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
                                            initializer=_init_worker,
                                            initargs=(worker_threads(jobs), os.getpid()))
 
-    def submit(self, fn, task):
+    def submit(self, fn, task, priority: int = 0):
         return self.pool.submit(fn, task)
 
     def wait(self, futures):
@@ -114,6 +119,7 @@ class ProcessExecutor(InlineExecutor):
 
 class DaskExecutor(InlineExecutor):
     name = "dask"
+    slots = None            # the cluster's scheduler places tasks, by their priority
 
     def __init__(self, address: str | None, jobs: int):
         try:
@@ -131,8 +137,9 @@ class DaskExecutor(InlineExecutor):
         except (OSError, TimeoutError, ValueError) as exc:
             raise PipelineError(f"cannot reach Dask scheduler at {address}: {exc}") from None
 
-    def submit(self, fn, task):
-        return self.client.submit(fn, task, pure=False, key=f"{task['instance']}-{task['key'][:8]}")
+    def submit(self, fn, task, priority: int = 0):
+        return self.client.submit(fn, task, pure=False, key=f"{task['instance']}-{task['key'][:8]}",
+                                  priority=int(priority))
 
     def wait(self, futures):
         from distributed import wait

@@ -136,6 +136,9 @@ class Scheduler:
         failure: tuple[str, dict] | None = None
         bar = _bar(len(names)) if progress else None
         self.store.init()
+        depth = chain_lengths(self.instances, names)
+        ready: list[tuple[str, str, dict]] = []     # stale instances whose inputs are all done
+        slots = getattr(executor, "slots", None)    # tasks the executor runs at once (None: it queues)
         try:
             while (pending and failure is None) or running:
                 for n in list(pending) if failure is None else []:
@@ -156,7 +159,14 @@ class Scheduler:
                     if inst.node.source and n not in explicit:
                         raise PipelineError(f"source node {n} has no artifact for these params; "
                                             f"capture it explicitly with `pipeline run '{n}'`")
-                    fut = executor.submit(execute, self._task(inst, key, parts, force and n in explicit))
+                    ready.append((n, key, parts))
+                # the longest chain of dependents first, so the critical path never waits behind
+                # work that could fill a free slot later (ties: plan order)
+                ready.sort(key=lambda r: -depth[r[0]])
+                while ready and failure is None and (slots is None or len(running) < slots):
+                    n, key, parts = ready.pop(0)
+                    fut = executor.submit(execute, self._task(self.instances[n], key, parts, force and n in explicit),
+                                          priority=depth[n])
                     running[fut] = (n, key, parts)
                 if not running:
                     if pending and failure is None:
@@ -195,6 +205,20 @@ class Scheduler:
         self.store.write_ref(name, {"key": rec["key"], "digest": rec["digest"], "code": parts["code"],
                                     "params_digest": parts["params_digest"],
                                     "input_digests": parts["input_digests"]}, changed=changed)
+
+
+def chain_lengths(instances: dict[str, Instance], names: list[str]) -> dict[str, int]:
+    """For each of `names` (topologically ordered), how many instances its longest chain of
+    dependents among `names` holds, itself included: a sink's is 1."""
+    down: dict[str, list[str]] = {n: [] for n in names}
+    for n in names:
+        for u in instances[n].upstream():
+            if u in down:
+                down[u].append(n)
+    out: dict[str, int] = {}
+    for n in reversed(names):
+        out[n] = 1 + max((out[d] for d in down[n]), default=0)
+    return out
 
 
 def _bar(total: int):

@@ -195,3 +195,31 @@ def test_timing_that_is_not_a_number_names_the_node(toy):
     p = cli(toy, "run", check=False)
     assert p.returncode == 2
     assert p.stderr.strip() == "pipeline: error: node scaled: timing 'seconds' is not a number: 'fast'"
+
+
+def test_the_longest_chain_of_dependents_runs_first(toy, tmp_path):
+    """With `frames` declared first, plan order would run it before `scaled`; `scaled` heads
+    the longer chain (scaled -> shifted -> summary) and runs first."""
+    g = toy / "toy" / "graph.py"
+    text = g.read_text()
+    line = next(l for l in text.splitlines() if l.startswith('GRAPH.node("frames"'))
+    g.write_text(text.replace(line + "\n", "").replace('GRAPH.node("scaled"', line + '\nGRAPH.node("scaled"'))
+    log = tmp_path / "log.txt"
+    out = run_json(toy, "--executor", "inline", env={"TOY_LOG": str(log)})
+    assert [n["name"] for n in out["nodes"]][:3] == ["base", "frames", "scaled"]       # the plan's order
+    assert log.read_text().split() == ["base", "scaled", "frames", "shifted[letter=a]", "shifted[letter=b]",
+                                       "summary"]
+
+
+def test_chain_lengths_count_the_longest_chain_of_dependents():
+    from pipeline.scheduler import chain_lengths
+
+    class Inst:
+        def __init__(self, *up):
+            self.up = list(up)
+
+        def upstream(self):
+            return self.up
+    instances = {"a": Inst(), "b": Inst("a"), "c": Inst("b"), "d": Inst("a"), "e": Inst("c", "d"), "x": Inst("a")}
+    names = ["a", "b", "c", "d", "e"]                    # x is not planned: it counts for nothing
+    assert chain_lengths(instances, names) == {"a": 4, "b": 3, "c": 2, "d": 2, "e": 1}
