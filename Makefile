@@ -24,7 +24,7 @@ run: setup
 	.venv/bin/pipeline run --executor process $(ARGS)
 
 test: setup-test
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n auto --dist loadfile
 
 # every benchmark, then one table of the ratios they measured (benchmarks/run_all.py)
 bench: setup

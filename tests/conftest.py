@@ -13,3 +13,11 @@ if os.environ["GENFORCE_DEVICE"] != "cpu":
     torch.backends.cudnn.allow_tf32 = False
     torch.backends.cuda.matmul.allow_tf32 = False
     torch.use_deterministic_algorithms(True, warn_only=True)
+
+# `make test` runs the suite in one pytest-xdist worker per core: torch in each takes its share
+# of the cores, not all of them (two workers' OpenMP threads spinning on each other's cores slow
+# both many times over)
+_WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+if _WORKERS > 1:
+    import torch
+    torch.set_num_threads(max(1, (os.cpu_count() or 1) // _WORKERS))
