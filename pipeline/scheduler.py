@@ -140,7 +140,7 @@ class Scheduler:
         ready: list[tuple[str, str, dict]] = []     # stale instances whose inputs are all done
         slots = getattr(executor, "slots", None)    # tasks the executor runs at once (None: it queues)
         try:
-            while (pending and failure is None) or running:
+            while ((pending or ready) and failure is None) or running:
                 for n in list(pending) if failure is None else []:
                     inst = self.instances[n]
                     if any(u not in done for u in inst.upstream()):

@@ -209,6 +209,9 @@ def test_the_longest_chain_of_dependents_runs_first(toy, tmp_path):
     assert [n["name"] for n in out["nodes"]][:3] == ["base", "frames", "scaled"]       # the plan's order
     assert log.read_text().split() == ["base", "scaled", "frames", "shifted[letter=a]", "shifted[letter=b]",
                                        "summary"]
+    # two instances ready at the last step, one slot: both run
+    two = run_json(toy, "--executor", "inline", "--store", "other", "shifted")
+    assert statuses(two) == {"base": "ran", "scaled": "ran", "shifted[letter=a]": "ran", "shifted[letter=b]": "ran"}
 
 
 def test_chain_lengths_count_the_longest_chain_of_dependents():
