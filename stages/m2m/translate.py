@@ -141,6 +141,8 @@ def flow_warp_sequence(*, source_markers, target_markers, eval_indenters: list[s
                                 convert, "flow_warp")
     result["attrs"].update(source=source, target=target)
     return result
+
+
 def image_features(*, markers, eval_indenters: list[str], n_eval: int, val_indenters: Sequence[str] = (),
                    skin: str = "") -> dict:
     """Node features[skin]: InceptionV3 features (n,2048) of the skin's scored frames of each
