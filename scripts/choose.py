@@ -22,7 +22,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from store_lookup import REPO  # noqa: E402
+
 METHODS = ("source_only", "genforce", "genforce_comp", "genforce_plus", "oracle")
 
 
@@ -48,24 +51,25 @@ def validation(metrics: dict, targets) -> dict:
     return out
 
 
-def image_validation(store: str, common: list[str]) -> dict:
+def image_validation(store: str, common: list[str], params: tuple[str, ...], profile: str | None) -> dict:
     """Mean validation FID of the built translate and translate_sim artifacts against their
-    targets' features (stages.imagemetrics.fid on the `features_val` sets)."""
+    targets' features (stages.imagemetrics.fid on the `features_val` sets); each artifact found
+    through store_lookup.artifact_path, as `pipeline get` finds it."""
     sys.path.insert(0, str(REPO))
     import numpy as np
     from pipeline.artifact import Artifact
     from stages.imagemetrics import fid
-    nodes = json.loads(_pipeline("status", "--json", *common, "translate", "translate_sim", "features").stdout
+    from store_lookup import artifact_path
+    nodes = json.loads(_pipeline("status", "--json", *common, "translate", "translate_sim").stdout
                        .strip().splitlines()[-1])["nodes"]
-    path = {n["name"]: json.loads((Path(store) / "index" / f"{n['key']}.json").read_text())["path"] for n in nodes}
 
     def val_features(name):
-        with Artifact(str(Path(store) / path[name])) as art:
+        with Artifact(artifact_path(store, name, "choose", params, profile)) as art:
             return np.asarray(art["features_val"])
     out = {}
     for family in ("translate", "translate_sim"):
         fids = []
-        for name in sorted(n for n in path if n.startswith(family + "[")):
+        for name in sorted(n["name"] for n in nodes if n["name"].startswith(family + "[")):
             target = name.split("target=", 1)[1].rstrip("]")
             fids.append(fid(val_features(name), val_features(f"features[skin={target}]")))
         if fids:
@@ -91,7 +95,7 @@ def main() -> None:
         print(f"choose: {args.key}={value}: pipeline run {' '.join(targets)}", file=sys.stderr, flush=True)
         _pipeline("run", "--executor", "process", *common, *targets)
         if args.images:
-            table[value] = image_validation(args.store, common)
+            table[value] = image_validation(args.store, common, (f"{args.key}={value}",), args.profile)
         else:
             metrics = json.loads(_pipeline("metrics", "--json", *common).stdout.strip().splitlines()[-1])
             table[value] = validation(metrics, args.targets)
