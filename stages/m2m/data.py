@@ -62,6 +62,8 @@ def read_rows(arr, rows: np.ndarray) -> np.ndarray:
         return arr[rows]
     if rows.size == 0:
         return np.asarray(arr[0:0])
+    if rows[-1] - rows[0] + 1 == rows.size:         # contiguous: one slice, not a point selection
+        return np.asarray(arr[int(rows[0]):int(rows[-1]) + 1])
     return np.asarray(arr[rows.tolist()])
 
 

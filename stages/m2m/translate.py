@@ -49,13 +49,6 @@ def _eval_rows(source, eval_indenters, val_indenters, n_eval) -> dict[str, np.nd
     return out
 
 
-def _read(arr, rows: np.ndarray) -> np.ndarray:
-    """arr[rows] (rows sorted, unique), as one slice where they are contiguous."""
-    if rows.size and rows[-1] - rows[0] + 1 == rows.size:
-        return np.asarray(arr[int(rows[0]):int(rows[-1]) + 1])
-    return read_rows(arr, rows)
-
-
 def _stream(source, target, eval_indenters, val_indenters, n_eval, convert, method: str,
             train_indenters: Sequence[str] | None = None):
     """Stream `convert(images) -> images` with the labels over the rows of the source sequence
@@ -76,12 +69,12 @@ def _stream(source, target, eval_indenters, val_indenters, n_eval, convert, meth
     t0 = time.perf_counter()
     for i in tqdm(range(0, n, CHUNK), desc=method, disable=None):
         rows = rows_out[i:i + CHUNK]
-        out = convert(_read(source["images"], rows))
+        out = convert(read_rows(source["images"], rows))
         for k, wanted in splits.items():
             at = np.searchsorted(rows, wanted)
             sel = (at < len(rows)) & (rows[np.minimum(at, len(rows) - 1)] == wanted)
             kept[k][sel] = out[at[sel]]
-        yield {"images": out, **{k: _read(source[k], rows) for k in labels}}
+        yield {"images": out, **{k: read_rows(source[k], rows) for k in labels}}
     seconds = time.perf_counter() - t0
     result = {"reference": np.asarray(target["reference"], np.uint8)}
     for k, rows in splits.items():
