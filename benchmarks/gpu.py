@@ -84,8 +84,8 @@ def m2m_part(size: int, steps: int, cpu_steps: int) -> dict:
         batches = PairBatches(images, np.stack(refs), seed=0)
         if dev == "cuda":                                  # warm-up: CUDA context, cuDNN's choices
             fit(net, cfg, batches, steps=2, batch_size=batch, lr=1e-3, seed=0, progress="m2m warm-up")
-        hist = fit(net, cfg, batches, steps=n, batch_size=batch, lr=1e-3, seed=0, change_share=0.1,
-                   change_per_example=0.5, progress=f"m2m {dev}")
+        hist = fit(net, cfg, batches, steps=n, batch_size=batch, lr=1e-3, seed=0,
+                   progress=f"m2m {dev}")
         out[f"train_{dev}"] = n / hist["seconds"]
         if dev == "cuda":
             weights = state_arrays(net)

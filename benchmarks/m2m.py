@@ -4,8 +4,8 @@ Run: python benchmarks/m2m.py [--size 256] [--widths 8,16] [--threads N] [--quic
 (about 2 minutes at the default 128x128 on a 2-core CPU; --size 256 is the paper profile;
 --quick: 5 training steps and 64 images)
 
-Rows per generator width: training steps/s (batch 16, one optimiser step each, the loss with
---change-share and the data pipeline of stages.m2m.train included),
+Rows per generator width: training steps/s (batch 16, one optimiser step each, the loss and
+the data pipeline of stages.m2m.train included),
 translated images/s with the one-step generator and with the 4-step sampler (batch 64,
 stages.m2m.model.Translator, uint8 in and out); then flow-warp images/s (stages.m2m.flow on
 synthetic deformed marker images) and InceptionV3 feature images/s (stages.imagemetrics, batch 32).  Wall time
@@ -71,8 +71,6 @@ def main():
     ap.add_argument("--widths", default="16")
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     ap.add_argument("--train-steps", type=int, default=20)
-    ap.add_argument("--change-share", type=float, default=0.1,
-                    help="the loss's change share (0.1: the default profile's fine-tune)")
     ap.add_argument("--images", type=int, default=256)
     ap.add_argument("--quick", action="store_true", help="5 training steps and 64 images")
     args = ap.parse_args()
@@ -94,7 +92,7 @@ def main():
         batches = PairBatches(images, np.stack(refs), seed=0)
         fit(net, cfg, batches, steps=2, batch_size=16, lr=1e-3, seed=0)          # warm-up
         train = timed(lambda: fit(net, cfg, batches, steps=args.train_steps, batch_size=16, lr=1e-3,
-                                  seed=0, change_share=args.change_share))
+                                  seed=0))
         tr = Translator(cfg, state_arrays(net))
         tr.translate(src[:64], refs[0], refs[1])                                  # warm-up
         one = timed(lambda: tr.translate(src, refs[0], refs[1]), repeat=2)

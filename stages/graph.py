@@ -127,7 +127,6 @@ GRAPH.node("m2m_sim", "stages.m2m.fit:pretrain",
                    "batch_size": "m2m.pretrain.batch_size", "lr": "m2m.pretrain.lr",
                    "seed": "m2m.pretrain.seed", "width": "m2m.pretrain.width",
                    "timesteps": "m2m.pretrain.timesteps",
-                   "change_share": "m2m.pretrain.change_share",
                    "source_gate": "m2m.pretrain.source_gate"},
            description="M2M generator trained from scratch on the 12 simulation patterns")
 GRAPH.node("m2m", "stages.m2m.fit:finetune",
@@ -135,7 +134,7 @@ GRAPH.node("m2m", "stages.m2m.fit:finetune",
            params={**_SEQS, "skins": _cat("force_sensors"), "groups": _cat("m2m_groups"),
                    "train_indenters": "splits.m2m_indenters", "pairs_per_skin": "m2m.finetune.pairs_per_skin", "steps": "m2m.finetune.steps",
                    "batch_size": "m2m.finetune.batch_size", "lr": "m2m.finetune.lr",
-                   "seed": "m2m.finetune.seed", "change_share": "m2m.finetune.change_share"},
+                   "seed": "m2m.finetune.seed"},
            description="M2M fine-tuned to the force studies' sensors with a few location-paired frames each")
 _EVAL = {"eval_indenters": "splits.test_indenters", "val_indenters": "splits.val_indenters",
          "n_eval": "m2m.n_eval"}

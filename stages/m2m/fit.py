@@ -67,7 +67,7 @@ def _distinct_references(skins: Sequence[str], refs: np.ndarray, title: str) -> 
 
 
 def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_size, lr, seed,
-           change_share, title, checkpoint=None, groups=()):
+           title, checkpoint=None, groups=()):
     from stages.m2m.model import Translator, state_arrays
     from stages.m2m.train import GroupBatches, PairBatches, fit
     if groups:          # frames are paired within each group only (GroupBatches)
@@ -89,7 +89,7 @@ def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_
         batches = (GroupBatches([PairBatches(im, rf, seed + k) for k, (_, im, rf) in enumerate(parts)],
                                 [len(g) for g, _, _ in parts], seed) if groups else PairBatches(images, refs, seed))
         hist = fit(net, config, batches, steps=int(steps), batch_size=int(batch_size), lr=float(lr),
-                   seed=int(seed), change_share=float(change_share), progress=title, checkpoint=checkpoint)
+                   seed=int(seed), progress=title, checkpoint=checkpoint)
         weights = state_arrays(net)
         samples = _samples_sheet(Translator(config, weights), images, refs, seed)
     tail = hist["loss"][-max(1, len(hist["loss"]) // 20):]
@@ -100,7 +100,7 @@ def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_
                     "samples": png(samples)},
         "attrs": {"config": config, "skins": list(skins), "train_indenters": list(train_indenters),
                   "pairs": int(len(frames)), "steps": int(steps), "batch_size": int(batch_size),
-                  "lr": float(lr), "seed": int(seed), "change_share": float(change_share),
+                  "lr": float(lr), "seed": int(seed),
                   "final_loss": float(np.mean(tail)) if len(tail) else float("nan"),
                   "parameters": int(sum(v.size for v in weights.values()))},
         "timing": {"seconds": round(hist["seconds"], 2), "steps_per_s": round(hist["steps_per_s"], 3),
@@ -110,7 +110,7 @@ def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_
 
 def pretrain(*, markers: Mapping, skins: list[str], train_indenters: list[str], size, steps: int,
              batch_size: int, lr: float, seed: int, width: int, timesteps: int,
-             change_share: float = 0.0, source_gate: bool = True, checkpoint: str | None = None) -> dict:
+             source_gate: bool = True, checkpoint: str | None = None) -> dict:
     """Node m2m_sim: the generator trained from scratch on every ordered pair of `skins`
     (location-paired frames of the training indenters).  Returns weights (name -> array),
     the per-step loss, figures loss/samples and attrs (config to rebuild the model, ...).
@@ -124,12 +124,12 @@ def pretrain(*, markers: Mapping, skins: list[str], train_indenters: list[str], 
     torch.manual_seed(int(seed))
     net = build(config)
     return _train(net, config, markers, skins, train_indenters, 0, steps, batch_size, lr, seed,
-                  change_share, "m2m pretrain", checkpoint=checkpoint)
+                  "m2m pretrain", checkpoint=checkpoint)
 
 
 def finetune(*, base, markers: Mapping, skins: list[str], train_indenters: list[str],
              pairs_per_skin: int, steps: int, batch_size: int, lr: float, seed: int,
-             change_share: float = 0.0, groups: list | None = None, checkpoint: str | None = None) -> dict:
+             groups: list | None = None, checkpoint: str | None = None) -> dict:
     """Node m2m: `base` (a pretrained model) fine-tuned on `pairs_per_skin` location-paired
     frames shared by `skins`, evenly spread over the training indenters' frames.  `groups`
     (lists of skins): frames are paired within each group alone, a step's examples all drawn
@@ -139,7 +139,7 @@ def finetune(*, base, markers: Mapping, skins: list[str], train_indenters: list[
     config = attrs_of(base)["config"]
     net = build(config, weights_of(base))
     out = _train(net, config, markers, skins, train_indenters, int(pairs_per_skin), steps, batch_size,
-                 lr, seed, change_share, "m2m finetune", checkpoint, [list(g) for g in groups or ()])
+                 lr, seed, "m2m finetune", checkpoint, [list(g) for g in groups or ()])
     if groups:
         out["attrs"]["groups"] = [list(g) for g in groups]
     out["attrs"]["base_skins"] = list(attrs_of(base).get("skins", []))

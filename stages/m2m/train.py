@@ -13,12 +13,7 @@ one-step generator and the multi-step sampler (model.sample).  The x0 loss
 replaces the paper's 5*MSE + LPIPS + 0.5*GAN: binary cross-entropy on the marker logits
 (the pixel term, exact for binary targets) plus a soft Dice term on marker probability (the
 shape term: it weighs the ~10% of marker pixels as much as the background, which LPIPS did
-for the paper's thin dots).  The fine-tune weighs the BCE of the pixels a deformation changed
-(change_share): a copy of the target reference is otherwise almost free, and it is the change
-that carries the force (for uSkin the growth of 16 dots).  The share rule sets the weight per
-target skin from the mean share of its pixels the deformation changes, since a contact
-changes about 1% of a GelSight image and about 12% of a 3-axis uSkin one: one fixed weight
-that lifts the first would draw the second's dots too large.
+for the paper's thin dots).
 No adversarial term: outputs are thresholded to binary images, so the blur a GAN fights
 does not reach the artifacts.
 """
@@ -51,13 +46,9 @@ class PairBatches:
         self.images, self.refs = images, references
         self.rng = np.random.default_rng(seed)
         self.square = images.shape[2] == images.shape[3]
-        # per skin, the mean share of pixels whose binary value differs from the reference's
-        self.changed_fraction = np.array([float(((im > 127) != (ref > 127)[None]).mean())
-                                          for im, ref in zip(images, references)], np.float32)
 
-    def __call__(self, batch: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(condition (B,3,H,W) in [-1,1], binary target (B,1,H,W), the target skin's
-        changed_fraction (B,))."""
+    def __call__(self, batch: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """(condition (B,3,H,W) in [-1,1], binary target (B,1,H,W))."""
         s, k = self.images.shape[:2]
         f = self.rng.integers(0, k, batch)
         a = self.rng.integers(0, s, batch)
@@ -67,7 +58,7 @@ class PairBatches:
         stack = np.stack([self._symmetry(x, int(g)) for x, g in
                           zip(stack, self.rng.integers(0, 8 if self.square else 4, batch))])
         x = torch.from_numpy(stack.astype(np.float32)) / 127.5 - 1.0
-        return x[:, :3], (x[:, 3:] > 0).float(), torch.from_numpy(self.changed_fraction[b])
+        return x[:, :3], (x[:, 3:] > 0).float()
 
     def state(self) -> dict:
         """The random stream's state (fit's checkpoints): restore() continues it exactly."""
@@ -111,32 +102,9 @@ class GroupBatches:
             b.restore(st)
 
 
-def loss_fn(logits: torch.Tensor, target: torch.Tensor, reference: torch.Tensor | None = None,
-            change_share: float = 0.0, changed_fraction: torch.Tensor | None = None) -> torch.Tensor:
-    """BCE on logits + DICE_WEIGHT * (1 - soft Dice) of the marker probability.
-
-    With a target `reference` (binary, like target), the BCE of every pixel the deformation
-    changed (target != reference) weighs w = max(1, s/(1-s) * (1-c)/c) with s = change_share
-    and c the changed share of the pixels: `changed_fraction` (B,) when given (PairBatches
-    passes the target skin's mean), else each example's own.  At its mean the
-    skin's changed pixels then carry the share s of the BCE: a skin whose contacts change 1% of
-    the image gets w ~ 9 at s = 0.1, one whose taxel dots change 12% of it gets w = 1, so each
-    is pushed off a copy of its reference about as hard.  Each example's BCE is the w-weighted
-    mean of its pixels; the batch's is the mean of those."""
-    if not 0 <= change_share < 1:
-        raise ValueError(f"change_share must be in [0, 1), got {change_share}")
-    if reference is None or change_share == 0:
-        bce = F.binary_cross_entropy_with_logits(logits, target)
-    else:
-        changed = (target - reference).abs()
-        n = changed[0].numel()
-        own = (changed.sum((1, 2, 3), keepdim=True) / n).clamp(min=1.0 / n)
-        frac = own if changed_fraction is None else \
-            changed_fraction.to(changed).reshape(-1, 1, 1, 1).clamp(min=1.0 / n)
-        share = change_share / (1 - change_share) * (1 - frac) / frac
-        w = 1.0 + (share.clamp(min=1.0) - 1.0) * changed
-        per_pixel = F.binary_cross_entropy_with_logits(logits, target, reduction="none")
-        bce = ((per_pixel * w).sum((1, 2, 3)) / w.sum((1, 2, 3))).mean()
+def loss_fn(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """BCE on logits + DICE_WEIGHT * (1 - soft Dice) of the marker probability."""
+    bce = F.binary_cross_entropy_with_logits(logits, target)
     prob = torch.sigmoid(logits)
     inter = (prob * target).sum((1, 2, 3))
     dice = (2 * inter + 1) / (prob.sum((1, 2, 3)) + target.sum((1, 2, 3)) + 1)
@@ -174,11 +142,10 @@ def noisy_input(target: torch.Tensor, config, gen: torch.Generator) -> tuple[tor
 
 
 def fit(net: M2MNet, config, batches: Callable, *, steps: int, batch_size: int, lr: float,
-        seed: int, change_share: float = 0.0, progress: str = "m2m",
+        seed: int, progress: str = "m2m",
         checkpoint: str | None = None, checkpoint_every_s: float = CHECKPOINT_EVERY_S) -> dict:
-    """AdamW with warm-up and cosine decay; `batches(b)` gives (condition, target, the target
-    skin's changed fraction) as PairBatches does; change_share as in loss_fn (the target
-    reference is the condition's third channel).
+    """AdamW with warm-up and cosine decay; `batches(b)` gives (condition, target) as
+    PairBatches does.
 
     `checkpoint`: a file where the whole training state (weights, optimiser, schedule, step,
     losses and every random stream, `batches.state()` included) is saved at the end of a step
@@ -220,10 +187,10 @@ def fit(net: M2MNet, config, batches: Callable, *, steps: int, batch_size: int, 
     net.train()
     t0 = last = time.perf_counter()
     for i in tqdm(range(start, steps), desc=progress, disable=None, initial=start, total=steps):
-        cond, target, frac = batches(batch_size)
+        cond, target = batches(batch_size)
         x_t, t = noisy_input(target, config, gen)
         cond, target, x_t, t = cond.to(dev), target.to(dev), x_t.to(dev), t.to(dev)
-        loss = loss_fn(net(x_t, cond, t), target, (cond[:, 2:3] > 0).float(), float(change_share), frac)
+        loss = loss_fn(net(x_t, cond, t), target)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

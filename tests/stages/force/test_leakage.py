@@ -46,7 +46,7 @@ def _chain(source, target, tiny_config):
     base = m2m_fit.pretrain(markers=markers, skins=["S", "T"], train_indenters=TRAIN, size=(32, 32), steps=3,
                         batch_size=4, lr=1e-3, seed=0, width=4, timesteps=10)
     tuned = m2m_fit.finetune(base=base, markers=markers, skins=["S", "T"], train_indenters=TRAIN,
-                         pairs_per_skin=6, steps=3, batch_size=4, lr=1e-3, seed=0, change_share=0.1)
+                         pairs_per_skin=6, steps=3, batch_size=4, lr=1e-3, seed=0)
     chunks, out = drain(m2m_translate.translate_sequence(model=tuned, source_markers=source, target_markers=target,
                                                eval_indenters=["torus"], val_indenters=["cone"], n_eval=4,
                                                train_indenters=TRAIN))

@@ -103,8 +103,8 @@ def test_batches_apply_one_symmetry_to_all_channels_and_loss():
     imgs[1] = imgs[0]                          # skin 1 is skin 0, so target == input image
     refs = _images(2, size=16, seed=3)
     refs[1] = refs[0]
-    cond, target, frac = PairBatches(imgs, refs, seed=0)(16)
-    assert cond.shape == (16, 3, 16, 16) and target.shape == (16, 1, 16, 16) and frac.shape == (16,)
+    cond, target = PairBatches(imgs, refs, seed=0)(16)
+    assert cond.shape == (16, 3, 16, 16) and target.shape == (16, 1, 16, 16)
     np.testing.assert_array_equal(cond[:, :1] > 0, target > 0.5)     # the same transform on every channel
     np.testing.assert_array_equal(cond[:, 1], cond[:, 2])
     logits_good = (2 * target - 1) * 20
@@ -130,58 +130,13 @@ def light_and_heavy():
     return ref, target, copy, wrong, dice
 
 
-def test_change_share_gives_the_changed_pixels_their_share_per_example():
-    """Two examples, 2 and 16 of 64 pixels changed, a confident copy of the reference: at
-    share s = 0.2 the first's changed pixels weigh 0.25 * 62/2 = 7.75 (BCE share 0.2), the
-    second's would weigh 0.25 * 48/16 < 1 and stay at 1; the example BCEs are averaged."""
+def test_loss_is_the_mean_bce_plus_the_soft_dice_term():
+    """A confident copy of the reference against targets that changed 2 and 16 of 64 pixels:
+    the BCE is that of the 18 wrong pixels over all 128, plus the mean soft-Dice term; against
+    the reference itself the loss is about 0."""
     ref, target, copy, wrong, dice = light_and_heavy()
-    first = 7.75 * 2 * wrong / (62 + 7.75 * 2)
-    second = 16 * wrong / 64
-    got = float(loss_fn(copy, target, ref, change_share=0.2))
-    assert got == pytest.approx((first + second) / 2 + dice, rel=1e-3)
-    # nothing changed: the weight has nothing to weigh
-    assert float(loss_fn(copy, ref, ref, change_share=0.2)) == pytest.approx(float(loss_fn(copy, ref)), rel=1e-6)
-    with pytest.raises(ValueError, match="change_share must be in \\[0, 1\\), got 1.0"):
-        loss_fn(copy, target, ref, change_share=1.0)
-    with pytest.raises(ValueError, match="change_share must be in \\[0, 1\\), got -0.1"):
-        loss_fn(copy, target, ref, change_share=-0.1)        # not silently taken as "off"
-
-
-def test_change_share_per_skin_weighs_every_example_of_a_skin_alike():
-    """PairBatches hands the target skin's mean changed fraction with each example; with it the
-    weight is the skin's, so a frame whose contact changed 16 of 64 pixels weighs its changed
-    pixels as much as a light touch's 2 on the same skin (per example: 3 against 31)."""
-    from torch.nn import functional as F
-    ref = np.zeros((8, 8), np.uint8)
-    ref[2:4, 2:4] = 255
-    light, heavy = ref.copy(), ref.copy()
-    light[2:4, 4] = 255                                     # 2 changed pixels
-    heavy[4:6, 0:8] = 255                                   # 16 changed pixels
-    images = np.stack([np.stack([light, heavy]), np.stack([ref, ref])])       # skins (2, 2 frames)
-    batches = PairBatches(images, np.stack([ref, ref]), seed=0)
-    np.testing.assert_allclose(batches.changed_fraction, [18 / 128, 0.0])
-    _, target, frac = batches(64)
-    # skin 1's targets are its 4-pixel reference (in any symmetry), skin 0's have 6 or 20 pixels
-    from_skin1 = target.sum((1, 2, 3)) == 4
-    assert 0 < int(from_skin1.sum()) < 64
-    np.testing.assert_allclose(frac.numpy(), np.where(from_skin1.numpy(), 0.0, 18 / 128))
-
-    t = torch.from_numpy(np.stack([light, heavy])[:, None] > 127).float()
-    r = torch.from_numpy(np.stack([ref, ref])[:, None] > 127).float()
-    copy = (2 * r - 1) * 30
-    wrong = float(F.binary_cross_entropy_with_logits(copy[0, 0, 2, 4], t[0, 0, 2, 4]))
-    dice = 1 - ((2 * 4 + 1) / (4 + 6 + 1) + (2 * 4 + 1) / (4 + 20 + 1)) / 2
-    w = 0.5 / 0.5 * (1 - 18 / 128) / (18 / 128)            # s = 0.5: w = 110/18 ~ 6.1 on both
-    got = float(loss_fn(copy, t, r, change_share=0.5, changed_fraction=torch.full((2,), 18 / 128)))
-    expect = (w * 2 * wrong / (62 + 2 * w) + w * 16 * wrong / (48 + 16 * w)) / 2 + dice
-    assert got == pytest.approx(expect, rel=1e-3)
-    # per example the heavy frame's weight would be 1 * 48/16 = 3 and the light one's 31
-    per_example = float(loss_fn(copy, t, r, change_share=0.5))
-    assert per_example == pytest.approx((31 * 2 * wrong / (62 + 62) + 3 * 16 * wrong / (48 + 48)) / 2 + dice,
-                                        rel=1e-3)
-    # a skin that never changes gets the weight of one changed pixel in 64, not a division by 0
-    zero = float(loss_fn(copy, r, r, change_share=0.5, changed_fraction=torch.zeros(2)))
-    assert np.isfinite(zero) and zero == pytest.approx(float(loss_fn(copy, r)), rel=1e-6)
+    assert float(loss_fn(copy, target)) == pytest.approx(18 * wrong / 128 + dice, rel=1e-3)
+    assert float(loss_fn(copy, ref)) < 1e-6
 
 
 def test_pair_batches_draw_targets_evenly_and_never_the_source():
@@ -193,7 +148,7 @@ def test_pair_batches_draw_targets_evenly_and_never_the_source():
     refs = np.zeros((s, size, size), np.uint8)
     for i in range(s):
         refs[i, i, :] = 255                             # row i marks skin i
-    cond, _, _ = PairBatches(images, refs, seed=0)(4000)
+    cond, _ = PairBatches(images, refs, seed=0)(4000)
 
     def skin(channel):
         """The marked line of each reference: a full row, or a full column after a transpose;
@@ -307,7 +262,7 @@ def test_group_batches_pair_frames_within_a_group_only():
     batches = GroupBatches([PairBatches(a, refs(2, 0), 0), PairBatches(b, refs(3, 255), 1)], [2, 3], seed=5)
     kinds = []
     for _ in range(400):
-        cond, target, _ = batches(4)
+        cond, target = batches(4)
         values = {float(cond[:, 0].mean()), float(target.mean())}
         assert values in ({-1.0, 0.0}, {1.0}), values     # never a 0-image beside a 255-target
         kinds.append(float(target.mean()) == 1.0)
