@@ -135,7 +135,7 @@ GRAPH.node("m2m", "stages.m2m.fit:finetune",
                    "train_indenters": "splits.m2m_indenters", "pairs_per_skin": "m2m.finetune.pairs_per_skin", "steps": "m2m.finetune.steps",
                    "batch_size": "m2m.finetune.batch_size", "lr": "m2m.finetune.lr",
                    "seed": "m2m.finetune.seed"},
-           description="M2M fine-tuned to the force studies' sensors with a few location-paired frames each")
+           description="M2M fine-tuned to the force studies' sensors with location-paired frames of the training indenters")
 _EVAL = {"eval_indenters": "splits.test_indenters", "val_indenters": "splits.val_indenters",
          "n_eval": "m2m.n_eval"}
 GRAPH.node("translate_sim", "stages.m2m.translate:translate_sim_sequence",

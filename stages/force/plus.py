@@ -2,7 +2,7 @@
 
 Every addition is applied after training, to a copy of the genforce_comp model, and reads only
 what GenForce already has without a force label of the target: the translations and the
-source's compensated labels, and the few location-paired frames of the target's own
+source's compensated labels, and the location-paired frames of the target's own
 collection on the training indenters that fine-tune M2M (images only).  So an addition costs
 no retraining, and the ablation (stages.force.study.ablation_study) can take each one away in
 turn from models of several seeds.

@@ -1,5 +1,5 @@
 """M2M's training nodes: m2m_sim (pretrain: the generator trained from scratch on the
-simulation patterns) and m2m (finetune: the same weights fine-tuned on a few location-paired
+simulation patterns) and m2m (finetune: the same weights fine-tuned on location-paired
 frames of the twins or of the authors' sensors)."""
 from __future__ import annotations
 
