@@ -110,17 +110,15 @@ def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_
 
 def pretrain(*, markers: Mapping, skins: list[str], train_indenters: list[str], size, steps: int,
              batch_size: int, lr: float, seed: int, width: int, timesteps: int,
-             source_gate: bool = True, checkpoint: str | None = None) -> dict:
+             checkpoint: str | None = None) -> dict:
     """Node m2m_sim: the generator trained from scratch on every ordered pair of `skins`
     (location-paired frames of the training indenters).  Returns weights (name -> array),
     the per-step loss, figures loss/samples and attrs (config to rebuild the model, ...).
     checkpoint: where the training saves its state as it goes (the worker gives a path per
-    cache key), so an interrupted run resumes (train.fit).
-    source_gate: the logits' base adds the source's edit where the references coincide
-    (model.M2MNet.base); the fine-tune keeps the pretrained model's config."""
+    cache key), so an interrupted run resumes (train.fit)."""
     import torch
     from stages.m2m.model import build, default_config
-    config = default_config(size=size, width=width, timesteps=timesteps, source_gate=source_gate)
+    config = default_config(size=size, width=width, timesteps=timesteps)
     torch.manual_seed(int(seed))
     net = build(config)
     return _train(net, config, markers, skins, train_indenters, 0, steps, batch_size, lr, seed,

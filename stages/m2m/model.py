@@ -16,14 +16,7 @@ the target sensor's reference image.  This is a CPU-sized version of the same id
   images are the probability thresholded at 0.5.  The logits are a residual on a base image
   (ref_gain x base + network output), so the network learns the edits the deformation makes
   to the target's markers rather than first learning to copy them.  The base is the target
-  reference plus, gated by how far the two references coincide, the source's own edit
-  (source image - source reference): base = target ref + g (source - source ref), g =
-  sigmoid(gate_scale (IoU - gate_at)), IoU of the two references' marker masks, gate_scale
-  and gate_at learnt (from 20 and 0.75; config source_gate).  Sensors that share a marker
-  pattern (the elastomers of the material study: IoU 0.96-0.98) then start from the source
-  image itself, which only the hardness changes, instead of redrawing every marker at its
-  ~1.7 px placement error; patterns that merely overlap (A-I/A-II 0.29, the two uSkins 0.55)
-  keep g near 0.
+  reference.
 * Diffusion: a DDPM linear beta schedule over `timesteps` steps.  The one-step generator
   (the paper's formulation) evaluates the network once at the fixed timestep T-1 on
   x_T = 0, the mean of pure noise: deterministic, and trained exactly that way (feeding a
@@ -58,21 +51,10 @@ def device() -> torch.device:
     return torch_device()
 
 
-def default_config(*, size=(128, 128), width: int = 16, timesteps: int = 1000,
-                   source_gate: bool = True) -> dict:
-    """Everything needed to rebuild the network (stored in the model artifact's attrs).  A
-    config without `source_gate` (a model stored before it existed) builds the ungated net."""
+def default_config(*, size=(128, 128), width: int = 16, timesteps: int = 1000) -> dict:
+    """Everything needed to rebuild the network (stored in the model artifact's attrs)."""
     return {"size": [int(v) for v in size], "width": int(width), "mults": [1, 2, 4],
-            "timesteps": int(timesteps), "beta_start": 1e-4, "beta_end": 2e-2,
-            "source_gate": bool(source_gate)}
-
-
-def reference_overlap(source_reference: torch.Tensor, target_reference: torch.Tensor) -> torch.Tensor:
-    """(B,1,1,1) IoU of the marker masks (> 0 in [-1, 1] images) of two (B,1,H,W) references."""
-    a, b = source_reference > 0, target_reference > 0
-    inter = (a & b).flatten(1).sum(1).float()
-    union = (a | b).flatten(1).sum(1).float().clamp_min(1.0)
-    return (inter / union)[:, None, None, None]
+            "timesteps": int(timesteps), "beta_start": 1e-4, "beta_end": 2e-2}
 
 
 def _groups(c: int) -> int:
@@ -113,13 +95,9 @@ class M2MNet(nn.Module):
         self.up1, self.dec1 = nn.Conv2d(c2, c1, 3, padding=1), ResBlock(2 * c1, c1, emb)
         self.up0, self.dec0 = nn.Conv2d(c1, c0, 3, padding=1), ResBlock(2 * c0, c0, emb)
         self.out_norm, self.out = nn.GroupNorm(_groups(c0), c0), nn.Conv2d(c0, 4, 3, padding=1)
-        # logits start from a base image (the target reference, see base): the network learns
-        # the edits that the deformation makes to it instead of first learning to copy it
+        # logits start from the target reference: the network learns the edits that the
+        # deformation makes to it instead of first learning to copy it
         self.ref_gain = nn.Parameter(torch.tensor(3.0))
-        self.source_gate = bool(config.get("source_gate", False))
-        if self.source_gate:
-            self.gate_scale = nn.Parameter(torch.tensor(20.0))
-            self.gate_at = nn.Parameter(torch.tensor(0.75))
         self.width = w
 
     def embed_time(self, t: torch.Tensor) -> torch.Tensor:
@@ -138,17 +116,7 @@ class M2MNet(nn.Module):
         h = self.mid2(self.mid1(self.down1(s1), emb), emb)
         h = self.dec1(torch.cat([self.up1(F.interpolate(h, scale_factor=2.0)), s1], 1), emb)
         h = self.dec0(torch.cat([self.up0(F.interpolate(h, scale_factor=2.0)), s0], 1), emb)
-        return F.pixel_shuffle(self.out(F.silu(self.out_norm(h))), 2) + self.ref_gain * self.base(cond)
-
-    def base(self, cond):
-        """The image the logits are a residual on: the target reference, plus the source's edit
-        where the two references coincide (source_gate)."""
-        target_ref = cond[:, 2:3]
-        if not self.source_gate:
-            return target_ref
-        source, source_ref = cond[:, 0:1], cond[:, 1:2]
-        g = torch.sigmoid(self.gate_scale * (reference_overlap(source_ref, target_ref) - self.gate_at))
-        return target_ref + g * (source - source_ref)
+        return F.pixel_shuffle(self.out(F.silu(self.out_norm(h))), 2) + self.ref_gain * cond[:, 2:3]
 
 
 # ------------------------------------------------------------------------- diffusion

@@ -163,30 +163,24 @@ def test_pair_batches_draw_targets_evenly_and_never_the_source():
     assert (target != source).all()
 
 
-def test_source_gate_starts_shared_patterns_from_the_source_image():
-    """With the network's own output zeroed, the translation is its base image: the source
-    image where source and target share their reference (IoU 1), the target reference where
-    the references differ (IoU ~0.1), and always the target reference without the gate (a
-    model stored before it) -- which then also has no gate weights to load."""
+def test_the_logits_are_a_residual_on_the_target_reference():
+    """With the network's own output zeroed, the translation is the target reference, whatever
+    the source shows; a model's weights with a parameter the net does not have do not load."""
     cfg = default_config(size=(32, 32), width=8, timesteps=50)
     net = build(cfg)
     with torch.no_grad():
         net.out.weight.zero_()
         net.out.bias.zero_()
     weights = state_arrays(net)
-    assert {"gate_scale", "gate_at"} <= set(weights)
     ref, other = np.zeros((32, 32), np.uint8), np.zeros((32, 32), np.uint8)
     ref[4::8, 4::8] = ref[5::8, 4::8] = 255                     # 16 two-pixel markers
     other[2::8, 6::8] = other[2::8, 7::8] = 255                 # elsewhere
     moved = np.roll(ref, 1, axis=1)[None]                       # every marker one pixel right
     t = Translator(cfg, weights)
-    np.testing.assert_array_equal(t.translate(moved, ref, ref), moved)
+    np.testing.assert_array_equal(t.translate(moved, ref, ref), ref[None])
     np.testing.assert_array_equal(t.translate(moved, ref, other), other[None])
-    old = {k: v for k, v in cfg.items() if k != "source_gate"}
-    plain = Translator(old, {k: v for k, v in weights.items() if k not in ("gate_scale", "gate_at")})
-    np.testing.assert_array_equal(plain.translate(moved, ref, ref), ref[None])
     with pytest.raises(KeyError, match="do not fit"):
-        build(old, weights)
+        build(cfg, {**weights, "gate_at": np.float32(0.75)})
 
 
 class _Stop(Exception):
