@@ -16,6 +16,7 @@ pairs (`translate_val/mean/m2m/fid`) and the `translate_sim` pairs
 (`translate_sim_val/mean/m2m/fid`), M2M's own objective, without training a regressor.
 """
 import argparse
+import functools
 import json
 import os
 import subprocess
@@ -24,7 +25,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from store_lookup import REPO  # noqa: E402
+from store_lookup import REPO, artifact_path  # noqa: E402
 
 METHODS = ("source_only", "genforce", "genforce_comp", "genforce_plus", "oracle")
 
@@ -59,10 +60,10 @@ def image_validation(store: str, common: list[str], params: tuple[str, ...], pro
     import numpy as np
     from pipeline.artifact import Artifact
     from stages.imagemetrics import fid
-    from store_lookup import artifact_path
     nodes = json.loads(_pipeline("status", "--json", *common, "translate", "translate_sim").stdout
                        .strip().splitlines()[-1])["nodes"]
 
+    @functools.cache                     # a target's features serve every pair into it
     def val_features(name):
         with Artifact(artifact_path(store, name, "choose", params, profile)) as art:
             return np.asarray(art["features_val"])

@@ -13,10 +13,9 @@ the target sensor's reference image.  This is a CPU-sized version of the same id
   spans several marker pitches, enough to carry the displacement of a neighbourhood of
   source markers onto the target markers in between.
 * It predicts the target marker image x0 as logits (probability = sigmoid); binary 0/255
-  images are the probability thresholded at 0.5.  The logits are a residual on a base image
-  (ref_gain x base + network output), so the network learns the edits the deformation makes
-  to the target's markers rather than first learning to copy them.  The base is the target
-  reference.
+  images are the probability thresholded at 0.5.  The logits are a residual on the target
+  reference (ref_gain x reference + network output), so the network learns the edits the
+  deformation makes to the target's markers rather than first learning to copy them.
 * Diffusion: a DDPM linear beta schedule over `timesteps` steps.  The one-step generator
   (the paper's formulation) evaluates the network once at the fixed timestep T-1 on
   x_T = 0, the mean of pure noise: deterministic, and trained exactly that way (feeding a
