@@ -1,10 +1,11 @@
 """Metrics gathered from the store, and comparison with a committed baseline.
 
-A baseline file (YAML or JSON) holds `metrics: {name: value}` and `tolerances:
-{glob: {abs: a, rel: r}}` (first matching glob wins; default: abs 0, rel 0). A metric
-regresses when it is worse than the baseline by more than max(abs, rel * |baseline|), in
-the metric's direction (higher is better for r2, iou, success; lower for the rest), or
-when it is missing.
+A baseline file (YAML or JSON) holds `metrics: {name: value}`, optionally `spread: {name:
+sd}` with `k: K` (each metric's standard deviation measured over runs that differ only in
+their seeds and CPU kernels, scripts/ci_baseline.py) and `tolerances: {glob: {abs: a, rel:
+r}}` (first matching glob wins; default: abs 0, rel 0).  A metric regresses when it is worse
+than the baseline by more than max(K * sd, abs, rel * |baseline|), in the metric's direction
+(higher is better for r2, iou, success; lower for the rest), or when it is missing.
 """
 from __future__ import annotations
 
@@ -56,7 +57,13 @@ def load_baseline(path: Path) -> dict:
             if k not in ("abs", "rel") or not _number(v) or v < 0:
                 raise PipelineError(f"baseline {path}: tolerance '{glob}' {k}={v!r}: "
                                     "expected abs or rel, a number >= 0")
-    return {"metrics": doc["metrics"], "tolerances": tol}
+    spread = doc.get("spread") or {}
+    if not isinstance(spread, dict) or not all(_number(v) and v >= 0 for v in spread.values()):
+        raise PipelineError(f"baseline {path}: 'spread' must map metrics to numbers >= 0")
+    k = doc.get("k", 0)
+    if not _number(k) or k < 0:
+        raise PipelineError(f"baseline {path}: 'k' must be a number >= 0, got {k!r}")
+    return {"metrics": doc["metrics"], "tolerances": tol, "spread": spread, "k": k}
 
 
 def _number(v) -> bool:
@@ -74,7 +81,8 @@ def compare(current: dict[str, float], baseline: dict) -> list[dict]:
     rows = []
     for name, base in sorted(baseline["metrics"].items()):
         t = tolerance(name, baseline["tolerances"])
-        allowed = max(float(t.get("abs", 0.0)), float(t.get("rel", 0.0)) * abs(float(base)))
+        noise = float(baseline.get("k", 0)) * float((baseline.get("spread") or {}).get(name, 0.0))
+        allowed = max(noise, float(t.get("abs", 0.0)), float(t.get("rel", 0.0)) * abs(float(base)))
         cur = current.get(name)
         if cur is None or (isinstance(cur, float) and math.isnan(cur)):
             rows.append({"metric": name, "baseline": base, "current": None, "allowed": allowed,

@@ -107,6 +107,9 @@ def _load_yaml(path: Path) -> tuple[Any, dict[str, int]]:
         raise PipelineError(f"params file {path}: a YAML alias contains itself (recursive anchor)") from None
     except yaml.YAMLError as exc:
         raise _malformed(exc, path) from None
+    except ValueError as exc:     # an integer past Python's digit limit for int()
+        raise PipelineError(f"params file {path}: value out of range: an integer too long to read "
+                            f"({exc.args[0].split(':')[0]})") from None
     finally:
         loader.dispose()
     if data is None:
@@ -149,7 +152,12 @@ def _check_value(key: str, default: Any, value: Any, where: str) -> Any:
         ok = isinstance(default, bool) and isinstance(value, bool)
     elif isinstance(default, float):
         ok = isinstance(value, (int, float))
-        value = float(value) if ok else value
+        if ok:
+            try:
+                value = float(value)
+            except OverflowError:
+                raise PipelineError(f"param '{key}' ({where}) must be a finite number, "
+                                    f"got an integer of {len(str(value))} digits") from None
         if ok and not math.isfinite(value) and math.isfinite(default):
             raise PipelineError(f"param '{key}' ({where}) must be a finite number, got {value!r}")
     elif isinstance(default, int):
@@ -237,15 +245,24 @@ def get(params: dict, dotted: str) -> Any:
         raise PipelineError(f"unknown param '{dotted}'") from None
 
 
+def shown(text: str, limit: int = 80) -> str:
+    """A user's text as an error line quotes it: cut to `limit` characters, so that a
+    400-digit value still gives one readable line."""
+    return text if len(text) <= limit else f"{text[:limit - 3]}..."
+
+
 def parse_override(text: str) -> tuple[str, Any]:
     key, sep, raw = text.partition("=")
     key = key.strip()
     if not sep or not _KEY.match(key):
-        raise PipelineError(f"malformed override {text!r}: expected KEY=VALUE with a dotted KEY")
+        raise PipelineError(f"malformed override {shown(text)!r}: expected KEY=VALUE with a dotted KEY")
     try:
-        value = safe_load(raw, f"override {text!r}") if raw.strip() else ""
+        value = safe_load(raw, f"override {shown(text)!r}") if raw.strip() else ""
     except yaml.YAMLError:
-        raise PipelineError(f"malformed value in override {text!r}: not valid YAML") from None
+        raise PipelineError(f"malformed value in override {shown(text)!r}: not valid YAML") from None
+    except ValueError as e:     # an integer past Python's digit limit for int()
+        raise PipelineError(f"value out of range in override {shown(text)!r}: "
+                            f"an integer too long to read ({e.args[0].split(':')[0]})") from None
     return key, value
 
 
@@ -275,8 +292,8 @@ def load(base_file: Path, profile: str | None = None, overrides: list[str] = (),
         except (KeyError, TypeError):
             holder = None
         if not isinstance(holder, dict):
-            raise _unknown(key, schema, f"-p {text}")
-        _merge(schema, holder, {leaf: value}, parent, lambda k: f"-p {text}", params, origins)
+            raise _unknown(key, schema, f"-p {shown(text)}")
+        _merge(schema, holder, {leaf: value}, parent, lambda k: f"-p {shown(text)}", params, origins)
     params = resolve_extends(params)
     if ranges_file is not None:
         from pipeline import ranges

@@ -114,13 +114,14 @@ def _violation(value: Any, rule: dict, params: dict, key: str) -> tuple[str, Any
             return key, value, f"must name an entry of {' or '.join(paths)}"
     bounds = [k for k in BOUNDS if k in rule]
     if bounds or rule.get("whole") or "multiple_of" in rule:
-        if not _number(value) or not math.isfinite(value):
+        # an int is finite however long (400 digits overflow a float: compare it exactly)
+        if not _number(value) or (isinstance(value, float) and not math.isfinite(value)):
             return key, value, "must be a finite number"
         for k in bounds:
             sign, ok = BOUNDS[k]
             if not ok(value, rule[k]):
                 return key, value, f"must be {sign} {rule[k]}"
-        if rule.get("whole") and float(value) != int(value):
+        if rule.get("whole") and isinstance(value, float) and not value.is_integer():
             return key, value, "must be a whole number"
         if "multiple_of" in rule and value % rule["multiple_of"]:
             return key, value, f"must be a multiple of {rule['multiple_of']}"

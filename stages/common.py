@@ -121,6 +121,29 @@ def torch_threads(n: int | None = None):
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OPENCV_FOR_THREADS_NUM")
 
 
+class KernelChoiceError(RuntimeError):
+    """numpy runs CPU-specific kernels in a process that runs nodes: one line, exit 2."""
+    user_error = True
+
+
+def numpy_kernels_fixed() -> None:
+    """Refuse to run a node where numpy chose its kernels by this CPU: numpy was imported
+    before `stages` set NPY_DISABLE_CPU_FEATURES (stages/__init__.py), e.g. in a Dask worker
+    started without it, and the node's floats would differ in their last bits from another
+    machine's under the same cache key."""
+    import platform
+    if platform.machine().lower() not in ("x86_64", "amd64"):
+        return
+    from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
+    on = [f for f in __cpu_dispatch__ if __cpu_features__.get(f)]
+    if on:
+        from stages import NUMPY_DISPATCH_OFF
+        raise KernelChoiceError(
+            f"numpy runs CPU-specific kernels ({', '.join(on)}) in this process: start it (a Dask "
+            f"worker: its environment) with NPY_DISABLE_CPU_FEATURES='{NUMPY_DISPATCH_OFF}', or "
+            "import stages before numpy")
+
+
 @contextlib.contextmanager
 def node_threads(n: int | None = None):
     """Run a node with `n` threads (default: :func:`default_threads`) in every numeric library,
@@ -133,16 +156,18 @@ def node_threads(n: int | None = None):
     torch_threads) differed between the inline and the process executor.  Libraries the node
     imports read THREAD_VARS; those already loaded are set directly; all is restored after."""
     n = max(1, int(n or default_threads()))
+    numpy_kernels_fixed()
     saved = {v: os.environ.get(v) for v in THREAD_VARS}
     os.environ.update({v: str(n) for v in THREAD_VARS})
     try:
         with contextlib.ExitStack() as stack:
             if "torch" in sys.modules:
                 stack.enter_context(torch_threads(n))
-            cv2 = sys.modules.get("cv2")
-            if cv2 is not None:
-                stack.callback(cv2.setNumThreads, cv2.getNumThreads())
-                cv2.setNumThreads(n)
+            import cv2      # its CPU-dispatched kernels (and IPP's) off: the same bits on every CPU
+            stack.callback(cv2.setUseOptimized, cv2.useOptimized())
+            cv2.setUseOptimized(False)
+            stack.callback(cv2.setNumThreads, cv2.getNumThreads())
+            cv2.setNumThreads(n)
             if any(m in sys.modules for m in ("numpy", "scipy", "sklearn", "cv2", "torch")):
                 from threadpoolctl import threadpool_limits
                 stack.enter_context(threadpool_limits(n))

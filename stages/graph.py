@@ -26,6 +26,10 @@ _SEQ = {"seq": Wiring("stages.catalogue:sequences", _CAT)}
 _SEQS = {"seqs": Wiring("stages.catalogue:sequence_node", _CAT)}
 _SEQS_GATHER = "{seqs[node]}[{seqs[var]}=@%s]"
 
+# what a render's content depends on: Mitsuba's variant and, for llvm, the pinned JIT target
+# (stages.markers.mitsuba_backend), in the cache keys of the nodes that render
+_RENDER_TARGET = Listing("stages.markers.mitsuba_backend:render_target", {"backend": "render.backend"})
+
 # -- simulation twin: shapes and where they press ---------------------------------------
 GRAPH.node("indenters", "stages.sim.indenters:indenter_set",
            params={"names": "indenters.names", "stl_dir": "indenters.stl_dir", "stl_tip": "indenters.stl_tip"},
@@ -72,7 +76,7 @@ GRAPH.node("contact_check", "stages.sim.checks:contact_check",
 GRAPH.node("render", "stages.markers.render:render_sequence",
            inputs={"deform": "deform[sensor={spec[body]}]", "patterns": "patterns"},
            params={"spec": "sensors.{skin}", "size": "render.size", "spp": "render.spp",
-                   "backend": "render.backend"},
+                   "backend": _RENDER_TARGET},
            grid={"skin": _cat("by_source", source="render")},
            description="Mitsuba render of the deformed skin: raw camera look + ground-truth marker mask")
 GRAPH.node("taxels", "stages.markers.uskin:taxel_sequence",
@@ -233,7 +237,7 @@ GRAPH.node("control", "stages.control.nodes:control_node",
                    "grasp": "control.grasp", "slip": "control.slip",
                    # the fingers carry the model's target skin: its gel, look and segmentation
                    "sensors": "sensors", "materials": "materials",
-                   "segmentation": "segmentation", "backend": "render.backend", "size": "render.size",
+                   "segmentation": "segmentation", "backend": _RENDER_TARGET, "size": "render.size",
                    "duration_s": "control.duration_s", "pull": "control.pull", "seed": "control.seed",
                    "reference_seed": "control.reference_seed",
                    "tolerance_N": "control.tolerance_N",

@@ -6,6 +6,8 @@ check the GPU paths, with TF32 off and torch's deterministic kernels: README, "G
 cluster"."""
 import os
 
+import stages  # noqa: F401  (before numpy: numpy's kernels the same on every CPU, stages/__init__.py)
+
 os.environ["GENFORCE_DEVICE"] = os.environ.get("GENFORCE_TEST_DEVICE", "cpu")
 if os.environ["GENFORCE_DEVICE"] != "cpu":
     os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")     # cuBLAS's deterministic mode

@@ -347,7 +347,8 @@ def render_sequence(*, deform: Mapping, patterns: Mapping, skin: str, spec: Mapp
     rows = [[sheet[i][k] for i in picks] for k in (0, 1) if picks and sheet[picks[0]][k] is not None]
     rows = rows or [[reference["truth"]]]                   # raw frames above their truth masks
     out["figures"] = {"frames": png(contact_sheet([img for row in rows for img in row], cols=len(rows[0])))}
-    out["attrs"] = {"backend": renderer.backend, "spp": int(spp), "size": list(renderer.size),
+    out["attrs"] = {"backend": renderer.backend, **({"target": backend["target"]} if isinstance(
+                        backend, Mapping) and "target" in backend else {}), "spp": int(spp), "size": list(renderer.size),
                     "look": look, "pattern": str(spec["pattern"]), "sensor": str(spec.get("sensor", "")),
                     "fov_x_deg": renderer.fov_x, **({} if renderer.view is None else
                                                     {"view_mm": list(renderer.view)}),

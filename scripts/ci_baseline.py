@@ -1,0 +1,98 @@
+"""Write the ci profile's regression baseline (baselines/ci.yaml) from measured noise.
+
+    python scripts/ci_baseline.py [--seeds 5] [--k 8] [--store artifacts-ci] [--out baselines/ci.yaml]
+
+Runs the ci DAG once per seed (every learned node's seed: the force regressors' and M2M's; the
+twin is shared, so it is built once) and once more at seed 0 with the CPU kernels restricted as
+another machine would choose them (`RESTRICTED`: torch's AVX2 kernels and OpenCV's without
+AVX2/AVX-512, in a store of its own, so that every node is recomputed).  Each metric's baseline
+is its mean over those runs and its `spread` their standard deviation; `pipeline metrics
+--baseline` allows a metric to be worse than its mean by k standard deviations.  A metric the
+runs agree on exactly (the twin's, bit for bit on any machine) is allowed no change.
+
+`make baseline` runs it with the defaults.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+SEED_KEYS = ("force.seed", "m2m.pretrain.seed", "m2m.finetune.seed")
+# the kernel choices of a CPU without AVX-512 (torch) and without AVX2 (OpenCV's dispatch)
+RESTRICTED = {"ATEN_CPU_CAPABILITY": "avx2", "OPENCV_CPU_DISABLE": "AVX512-SKX,AVX2"}
+HEADER = """\
+# Metric regression baseline of the ci profile (tiny sizes, a few training steps), written by
+# `make baseline` (scripts/ci_baseline.py): each metric's mean over {runs} runs of the ci DAG ({seeds}
+# seeds of every learned node, and seed 0 again with {restricted}), and in `spread` their
+# standard deviation.  tests/test_project.py fails when a metric is worse than its mean by more
+# than k standard deviations; a metric on which every run agreed (the twin's: bit for bit on
+# any x86-64 machine) may not change at all.
+"""
+
+
+def pipeline(*args: str, env: dict | None = None) -> str:
+    p = subprocess.run([sys.executable, "-m", "pipeline", *args], cwd=ROOT, capture_output=True,
+                       text=True, env={**os.environ, **(env or {})})
+    if p.returncode:
+        sys.exit(f"ci_baseline: pipeline {' '.join(args)} failed:\n{p.stderr[-3000:]}")
+    return p.stdout
+
+
+def run(store: Path, seed: int, env: dict | None = None) -> dict[str, float]:
+    """The ci DAG's metrics at one seed of every learned node."""
+    over = [a for key in SEED_KEYS for a in ("-p", f"{key}={seed}")]
+    pipeline("run", "--profile", "ci", "--executor", "process", "--store", str(store), *over, env=env)
+    return json.loads(pipeline("metrics", "--profile", "ci", "--store", str(store), "--json", *over, env=env))
+
+
+def summarise(runs: list[dict[str, float]]) -> tuple[dict[str, float], dict[str, float]]:
+    """(mean, sample standard deviation) of each metric every run reports as a number."""
+    means, spread = {}, {}
+    names = sorted(set.intersection(*(set(r) for r in runs)))
+    for name in names:
+        values = [r[name] for r in runs]
+        if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
+            continue
+        if max(values) == min(values):
+            means[name], spread[name] = float(values[0]), 0.0
+            continue
+        mean = math.fsum(values) / len(values)
+        means[name] = mean
+        spread[name] = math.sqrt(math.fsum((v - mean) ** 2 for v in values) / (len(values) - 1))
+    return means, spread
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seeds", type=int, default=5, help="seeds of the learned nodes (>= 2)")
+    ap.add_argument("--k", type=float, default=8.0, help="standard deviations a metric may be worse by")
+    ap.add_argument("--store", type=Path, default=ROOT / "artifacts-ci")
+    ap.add_argument("--out", type=Path, default=ROOT / "baselines" / "ci.yaml")
+    args = ap.parse_args(argv)
+    if args.seeds < 2:
+        ap.error("--seeds must be at least 2")
+    runs = []
+    for seed in range(args.seeds):
+        print(f"ci_baseline: seed {seed}", file=sys.stderr, flush=True)
+        runs.append(run(args.store, seed))
+    print("ci_baseline: seed 0, restricted CPU kernels", file=sys.stderr, flush=True)
+    runs.append(run(args.store.with_name(args.store.name + "-restricted"), 0, RESTRICTED))
+    means, spread = summarise(runs)
+    restricted = ", ".join(f"{k}={v}" for k, v in RESTRICTED.items())
+    head = HEADER.format(runs=len(runs), seeds=args.seeds, restricted=restricted)
+    body = yaml.safe_dump({"k": args.k, "metrics": means, "spread": spread}, sort_keys=False)
+    args.out.write_text(head + body)
+    noisy = sum(v > 0 for v in spread.values())
+    print(f"ci_baseline: wrote {len(means)} metrics ({noisy} with a spread) to {args.out}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()
