@@ -440,8 +440,9 @@ class Store:
                 if not self.path(key).exists():
                     return []
                 raise PipelineError(f"gc: artifact {key} cannot be read ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__}), "
-                                    "so which inputs it keeps is unknown; `pipeline verify` moves it "
-                                    "aside (nothing was removed)") from None
+                                    "so which inputs it keeps is unknown; a `pipeline run` that needs it "
+                                    f"moves it aside and recomputes it, or remove {self.path(key)} "
+                                    "(nothing was removed)") from None
         out = []
         for v in ((rec or {}).get("inputs") or {}).values():
             out += list(v.values()) if isinstance(v, dict) else [v]

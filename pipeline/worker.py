@@ -15,6 +15,8 @@ file once the artifact is committed.  A function with an `after_publish` paramet
 callable: `after_publish(action)` runs `action()` once the artifact is durably published (its
 file and its folder's entry fsync'd), never when the node or the write fails; hardware capture
 deletes its staging file so, and a kill at any instant leaves the staging file or the artifact.
+A function with a `forced` parameter learns whether this run was forced (`--force`): a
+source node's staging left by an earlier, finished session is then not this run's.
 An exception whose class sets `user_error = True` (a device that is missing or disconnects) is
 reported as one line, like a PipelineError.  A task's "context" ("module:function", the
 project's [tool.pipeline] node_context) is a context manager every node runs inside, whatever
@@ -209,6 +211,8 @@ def execute(task: dict) -> dict:
                 kwargs["staging_dir"] = str(store.staging)
             if checkpoint:
                 kwargs["checkpoint"] = str(checkpoint)
+            if "forced" in takes:       # a source node's --force run: its staging is not this run's
+                kwargs["forced"] = bool(task.get("force"))
             published: list = []
             if "after_publish" in takes:
                 kwargs["after_publish"] = published.append

@@ -351,11 +351,13 @@ def capture(*, trajectory: Mapping, devices, robot: Mapping, netft: Mapping, ser
             camera: Mapping, xela: Mapping, slcan: Mapping, sensor: str, rate_hz: float,
             staging_dir: str, emulate: bool, session: Mapping | None = None,
             indenters: Mapping | None = None, spec: Mapping | None = None,
-            materials: Mapping | None = None, after_publish=None):
+            materials: Mapping | None = None, after_publish=None, forced: bool = False):
     """Source node `capture`: see the module docstring.  A generator: it captures (or resumes)
     into the staging file, then yields the staged rows in chunks and returns the rest.
     after_publish: the engine's; it deletes the staging file once the artifact holding its rows
     is durably published (called directly, without it, the node deletes the file on return).
+    forced: the engine's, true in a `--force` run: a staging file whose session finished is
+    then an earlier session's (published, or about to be when a run stopped), never this run's.
 
     session: name (staging file capture-<name>.h5; default the sensor), indenters (names to
     capture; default all the trajectory has), contacts_per_indenter / frame_stride (as the
@@ -393,6 +395,12 @@ def capture(*, trajectory: Mapping, devices, robot: Mapping, netft: Mapping, ser
     layout = _layout(devices, cam_out)
 
     st = Staging(path, check, layout)
+    if forced and st.complete:
+        done = st.contacts_done
+        st.close()
+        raise InputError(f"staging file {path} holds an earlier session's finished capture ({done} "
+                         "contacts, published or about to be when a run stopped): remove it for a fresh "
+                         "capture, or run without --force to publish it if the store lacks it")
     try:
         if st.contacts_done < len(contacts):
             try:
@@ -464,7 +472,7 @@ def capture_calibration(*, trajectory: Mapping, sensor: str, spec: Mapping, devi
                         robot: Mapping, netft: Mapping, serial_ft: Mapping, camera: Mapping,
                         xela: Mapping, slcan: Mapping, rate_hz: float, staging_dir: str,
                         emulate: bool, materials: Mapping, indenters: Mapping | None = None,
-                        after_publish=None):
+                        after_publish=None, forced: bool = False):
     """Source node `capture_calibration[sensor]`: the material-compensation calibration pressed
     into a real sensor (or its emulated twin) and recorded with an F/T sensor, so that the
     compensation reads this sensor's own force-depth curves (stages.force.compensation) where
@@ -476,7 +484,7 @@ def capture_calibration(*, trajectory: Mapping, sensor: str, spec: Mapping, devi
     sensor (a camera or skin, if listed, is recorded too but not needed).  `session`
     (CALIBRATION_SESSION): name (staging file capture-<name>.h5; default <sensor>-calibration),
     chunk_frames, tool_change.  The device parameters, rate_hz, emulate, staging and
-    after_publish are capture's.
+    after_publish and forced are capture's.
 
     Returns capture's arrays (force, depth, normalised_depth = depth / max_depth_mm, phase,
     shift, ...) with attrs: calibration true, indenter (the trajectory's), max_depth_mm and
@@ -517,7 +525,7 @@ def capture_calibration(*, trajectory: Mapping, sensor: str, spec: Mapping, devi
                                camera=camera, xela=xela, slcan=slcan, sensor=sensor, rate_hz=rate_hz,
                                staging_dir=staging_dir, emulate=emulate, session=run,
                                indenters=indenters, spec=spec, materials=materials,
-                               after_publish=after_publish)
+                               after_publish=after_publish, forced=forced)
     final["attrs"].update({"calibration": True, "indenter": indenter, "max_depth_mm": max_depth,
                            "pad_mm": [float(v) for v in spec["pad_mm"]]})
     return final

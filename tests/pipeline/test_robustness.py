@@ -585,3 +585,20 @@ def test_a_full_disk_is_one_line_and_damages_nothing(toy, small_disk):
     assert cli(toy, "verify", "--store", str(store)).returncode == 0
     assert set(statuses(run_json(toy, "--store", str(store))).values()) == {"cached"}
     assert len(first["nodes"]) == len(list((store / "objects").glob("*.h5")))
+
+
+def test_gc_names_the_command_that_clears_an_unreadable_artifact(toy):
+    """Before: its hint said `pipeline verify` moves the file aside; it does not, and gc
+    refused again after any number of verifies."""
+    first = run_json(toy)
+    key = next(n["key"] for n in first["nodes"] if n["name"] == "shifted[letter=a]")
+    path = toy / "artifacts" / "objects" / f"{key}.h5"
+    path.write_bytes(b"not an HDF5 file" * 64)          # unreadable, and its record ...
+    (toy / "artifacts" / "index" / f"{key}.json").unlink()   # ... gone: gc must read the file
+    p = cli(toy, "gc", check=False)
+    assert p.returncode == 2 and p.stderr.count("\n") == 1
+    assert f"a `pipeline run` that needs it moves it aside and recomputes it, or remove {path}" in p.stderr
+    cli(toy, "verify", check=False)
+    assert cli(toy, "gc", check=False).returncode == 2            # verify does not clear it
+    run_json(toy)                                                 # the command the hint names
+    assert cli(toy, "gc").returncode == 0

@@ -340,3 +340,27 @@ def test_a_kill_while_sealing_keeps_the_staging_file_or_the_artifact(seal_projec
         for name, value in staged.items():       # the rows captured before the kill, not new ones
             np.testing.assert_array_equal(f[name][()], value, err_msg=name)
     assert staging.exists() == (point != "before_replace")   # a kill after publishing leaves it over
+
+
+def test_a_forced_capture_never_republishes_an_earlier_sessions_staging_file(seal_project):
+    """Before: a kill between the publish and the staging file's removal left the finished
+    session's file, and `run capture --force` republished its old rows as new in a second."""
+    import shutil
+    root, env, key = seal_project
+    store = root / "artifacts"
+    shutil.rmtree(store, ignore_errors=True)
+    shutil.copytree(root / "inputs", store)
+    assert _pipeline(root, env, "before_staging_removed", code=KILL_AT).returncode == -9
+    staging = store / "staging" / "capture-gelsight-r10.h5"
+    artifact = store / "objects" / f"{key}.h5"
+    before = artifact.read_bytes()
+    forced = _pipeline(root, env, "run", "capture", "--force")
+    assert forced.returncode == 2 and "Traceback" not in forced.stderr
+    assert forced.stderr.startswith(f"pipeline: error: node capture: staging file {staging} holds an earlier session's "
+                                    "finished capture (2 contacts") and forced.stderr.count("\n") == 1
+    assert artifact.read_bytes() == before and staging.exists()
+    staging.unlink()                                   # as the line says: a fresh capture
+    fresh = _pipeline(root, env, "run", "capture", "--force", "--json")
+    assert fresh.returncode == 0, fresh.stderr[-2000:]
+    assert {n["name"]: n["status"] for n in json.loads(fresh.stdout)["nodes"]}["capture"] == "ran"
+    assert not staging.exists()
