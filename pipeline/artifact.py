@@ -22,6 +22,12 @@ from pipeline.errors import PipelineError
 from pipeline.hashing import ContentDigest
 
 COMPRESS_MIN_BYTES = 1 << 16
+# Every numeric array is chunked with HDF5's Fletcher32 checksum on each chunk, and the file's
+# metadata (object headers, attributes) carries HDF5's own checksums (format v110 and later):
+# a damaged byte makes its read fail, where lzf alone would decompress it into other values
+# without a word.  A node whose read fails has its inputs re-digested (pipeline.worker).
+CHECKSUM = {"fletcher32": True}
+LIBVER = ("v110", "latest")
 CHUNK_BYTES = 1 << 20
 OVERLAP_BYTES = 1 << 20   # arrays this large are digested in a thread while HDF5 writes them
 READ_BLOCK_BYTES = 1 << 24
@@ -128,7 +134,7 @@ class ArtifactWriter:
         self.provenance = dict(provenance)
         self._raw = _TempFile(tmp)
         try:
-            self.file = h5py.File(self._raw, "w")
+            self.file = h5py.File(self._raw, "w", libver=LIBVER)
         except BaseException:
             self._raw.close()
             tmp.unlink(missing_ok=True)
@@ -150,8 +156,9 @@ class ArtifactWriter:
         def write() -> None:
             if arr.dtype.kind == "O":
                 self.file.create_dataset(name, data=arr, dtype=_STR)
-            elif arr.ndim and arr.nbytes >= COMPRESS_MIN_BYTES:
-                self.file.create_dataset(name, data=arr, compression="lzf", chunks=True)
+            elif arr.ndim and arr.size:
+                packed = {"compression": "lzf"} if arr.nbytes >= COMPRESS_MIN_BYTES else {}
+                self.file.create_dataset(name, data=arr, chunks=True, **packed, **CHECKSUM)
             else:
                 self.file.create_dataset(name, data=arr)
         _overlapped(write, lambda: self.digest.update_whole(name, arr),
@@ -170,7 +177,8 @@ class ArtifactWriter:
             row = max(1, arr[0:1].nbytes)
             rows = max(1, min(4096, CHUNK_BYTES // row))
             ds = self.file.create_dataset(name, shape=(0, *arr.shape[1:]), maxshape=(None, *arr.shape[1:]),
-                                          dtype=arr.dtype, chunks=(rows, *arr.shape[1:]), compression="lzf")
+                                          dtype=arr.dtype, chunks=(rows, *arr.shape[1:]), compression="lzf",
+                                          **CHECKSUM)
             self._streams[name] = ds
         elif ds.dtype != arr.dtype or ds.shape[1:] != arr.shape[1:]:
             raise PipelineError(f"dataset '{name}': chunk {arr.dtype}{arr.shape[1:]} does not match "

@@ -214,7 +214,11 @@ class Store:
         another key (copied or moved over this one) is refused: moved aside, one line naming
         it, and the next run recomputes it."""
         from pipeline.artifact import Artifact
-        art = Artifact(self.path(key))
+        try:
+            art = Artifact(self.path(key))
+        except PipelineError:          # a damaged superblock or header fails its checksum
+            self.check_damage(key, name)
+            raise
         try:
             found = art.provenance.get("key")
         except Exception:  # noqa: BLE001 - unreadable provenance: check_damage names it

@@ -41,3 +41,9 @@ def load_script(name: str):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def data_offset(dataset) -> int:
+    """The file offset of an h5py dataset's first stored data byte, contiguous or chunked."""
+    offset = dataset.id.get_offset()
+    return offset if offset is not None else dataset.id.get_chunk_info(0).byte_offset

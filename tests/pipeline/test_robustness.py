@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 from pipeline.cli import main
 import toyproject
 from toyproject import cli, run_json, statuses
+from tests.helpers import data_offset
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -135,7 +136,7 @@ def test_concurrent_runs_compute_each_node_once(toy, tmp_path):
 
 def _flip(path: Path, dataset: str) -> None:
     with h5py.File(path, "r") as f:
-        offset = f[dataset].id.get_offset()
+        offset = data_offset(f[dataset])
     with open(path, "r+b") as fh:
         fh.seek(offset)
         b = fh.read(1)
