@@ -368,7 +368,7 @@ def test_a_damaged_input_stops_its_dependent_and_is_recomputed_first(ci_store, t
             in p.stderr), p.stderr
     again = {n["name"]: n["status"] for n in json.loads(pipeline(
         "run", "--profile", "ci", "--json", "--store", str(copy)).stdout)["nodes"]}
-    assert again["deform[sensor=uskin]"] in ("ran", "cutoff") and again["taxels[skin=uskin-3axis]"] == "cached"
+    assert again["deform[sensor=uskin]"] == "ran" and again["taxels[skin=uskin-3axis]"] in ("cached", "cutoff")
     assert pipeline("verify", "--store", str(copy)).returncode == 0
     after = {name: json.loads((copy / "index" / f"{key}.json").read_text())["digest"] for name, key in keys.items()}
     assert {n: d for n, d in after.items() if d != digests[n]} == {}
