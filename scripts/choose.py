@@ -7,8 +7,8 @@ print each method's validation means side by side (never the test split's).
 e.g. `python scripts/choose.py force.config.seq_len 12 24` (`-p KEY=VALUE` for each).  Every
 value shares the store, so only what a value changes is recomputed; the current run is left
 at the last value given, so a plain `pipeline run` afterwards restores the profile's.
-Printed per value: `<study>_val/mean/<method>/mae_total` of every method and the study's
-validation FID of the M2M translations (`<study>_val/mean/m2m/fid`).
+Printed per value: `<study>_val/mean/<method>/mae_total` of every method beside its seed
+spread (`..._sd`: a value wins only beyond it) and the study's validation FID of the M2M translations (`<study>_val/mean/m2m/fid`).
 
 With `--images` (for M2M's own params): builds only the translations and the skins' features,
 and prints the mean validation FID of the translations into each target over the `translate`
@@ -44,8 +44,9 @@ def validation(metrics: dict, targets) -> dict:
     for study in targets:
         for m in METHODS:
             k = f"{study}_val/mean/{m}/mae_total"
-            if k in metrics:
-                out[k] = metrics[k]
+            for name in (k, f"{k}_sd"):          # the mean over the regressor seeds, its spread
+                if name in metrics:
+                    out[name] = metrics[name]
         k = f"{study}_val/mean/m2m/fid"
         if k in metrics:
             out[k] = metrics[k]

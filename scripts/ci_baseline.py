@@ -2,8 +2,8 @@
 
     python scripts/ci_baseline.py [--seeds 5] [--k 8] [--store artifacts-ci] [--out baselines/ci.yaml]
 
-Runs the ci DAG once per seed (every learned node's seed: the force regressors' and M2M's; the
-twin is shared, so it is built once) and once more at seed 0 with the CPU kernels restricted as
+Runs the ci DAG once per seed (every learned node's seed: M2M's, and the force regressors' seed
+list shifted along; the twin is shared, so it is built once) and once more at seed 0 with the CPU kernels restricted as
 another machine would choose them (`RESTRICTED`: torch's AVX2 kernels and OpenCV's without
 AVX2/AVX-512, in a store of its own, so that every node is recomputed).  Each metric's baseline
 is the value the ci DAG gives at its own seeds (what CI computes), and its `spread` the
@@ -29,7 +29,7 @@ from pathlib import Path
 import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
-SEED_KEYS = ("force.seed", "m2m.pretrain.seed", "m2m.finetune.seed")
+SEED_KEYS = ("m2m.pretrain.seed", "m2m.finetune.seed")   # and force.seeds, shifted (seed_overrides)
 # the kernel choices of a CPU without AVX-512 (torch) and without AVX2 (OpenCV's dispatch)
 RESTRICTED = {"ATEN_CPU_CAPABILITY": "avx2", "OPENCV_CPU_DISABLE": "AVX512-SKX,AVX2"}
 HEADER = """\
@@ -50,9 +50,20 @@ def pipeline(*args: str, env: dict | None = None) -> str:
     return p.stdout
 
 
+def seed_overrides(seed: int) -> list[str]:
+    """-p arguments for run `seed`: M2M's seeds set to it, the ci profile's n regressor seeds
+    (force.seeds) shifted to the n after the n * seed first (run 0: the profile's own)."""
+    from pipeline import params as P
+    from pipeline.config import find_project
+    project = find_project(ROOT)
+    ci = P.load(project.params_file, "ci", [], project.profiles_dir)["force"]["seeds"]
+    shifted = [int(v) + seed * len(ci) for v in ci]
+    return [a for key in SEED_KEYS for a in ("-p", f"{key}={seed}")] + ["-p", f"force.seeds={shifted}"]
+
+
 def run(store: Path, seed: int, env: dict | None = None) -> dict[str, float]:
     """The ci DAG's metrics at one seed of every learned node."""
-    over = [a for key in SEED_KEYS for a in ("-p", f"{key}={seed}")]
+    over = seed_overrides(seed)
     pipeline("run", "--profile", "ci", "--executor", "process", "--store", str(store), *over, env=env)
     return json.loads(pipeline("metrics", "--profile", "ci", "--store", str(store), "--json", *over, env=env))
 

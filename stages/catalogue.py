@@ -265,3 +265,8 @@ def twin_data(data_source="twin") -> dict:
         raise CatalogueError("this node runs on the twin's sensors, and with data.source authors the "
                              "studies run on the authors' sensors instead: run it with data.source twin")
     return {}
+
+
+def first_seed(seeds) -> list:
+    """[the first regressor seed of force.seeds]: the models node `control` drives the gripper with."""
+    return [seeds[0]]

@@ -178,8 +178,8 @@ _FIT = {"config": "force.config", "steps": "force.steps", "batch_size": "force.b
         "train_indenters": "splits.train_indenters"}
 GRAPH.node("own", "stages.force.fit:fit_own",
            inputs={"markers": "{seq[{skin}]}"},
-           params={**{k: v for k, v in _FIT.items() if k != "finetune_steps"}, "seed": "force.seed", **_SEQ},
-           grid={"skin": _cat("force_sensors")},
+           params={**{k: v for k, v in _FIT.items() if k != "finetune_steps"}, **_SEQ},
+           grid={"skin": _cat("force_sensors"), "seed": "force.seeds"},
            description="force regressor on a skin's own labels: source-only model and oracle")
 # a sensor's calibration: the twin's calibrate of its body, the authors' curves, or none (the
 # authors' homo set: one gel, no compensation)
@@ -188,10 +188,10 @@ GRAPH.node("transfer", "stages.force.fit:fit_transfer",
                    "source_calibration": "{cal[{source}]}", "target_calibration": "{cal[{target}]}",
                    "target_markers": "{seq[{target}]}",
                    "captured_calibrations": "capture_calibration[*]"},
-           params={**_FIT, "seed": "force.seed", "additions": "plus.additions",
+           params={**_FIT, "additions": "plus.additions",
                    "pairs": "m2m.finetune.pairs_per_skin", **_SEQ,
                    "cal": Wiring("stages.catalogue:calibrations", _CAT)},
-           grid={"source,target": _TRANSFER_PAIRS},
+           grid={"source,target": _TRANSFER_PAIRS, "seed": "force.seeds"},
            description="GenForce: regressors on translated images with source labels, raw (genforce), "
                        "compensated (genforce_comp) and with our additions (genforce_plus)")
 # each study reads only its own sensors' artifacts (node param `members`, the @ selectors)
@@ -211,14 +211,8 @@ for _study, _what in (("homo", "study homo (paper Fig. 4): the five GelSight twi
                description=_what)
 
 # -- the ablation of genforce_plus: run only when named (`pipeline run ablation`) -------------
-GRAPH.node("transfer_seed", "stages.force.fit:fit_transfer_seed",
-           inputs={"transfer": "transfer[source={source},target={target}]",
-                   "translated": "translate[source={source},target={target}]"},
-           params=_FIT,
-           grid={"source,target": _TRANSFER_PAIRS, "seed": "ablation.seeds"},
-           description="a pair's genforce_comp trained again from another seed (the ablation's spread)")
 GRAPH.node("ablation", "stages.force.study:ablation_study",
-           inputs={"transfer": "transfer[*]", "seeds": "transfer_seed[*]", "translated": "translate[*]",
+           inputs={"transfer": "transfer[*]", "translated": "translate[*]",
                    "markers": "{seqs[node]}[*]"},
            params={"homo": _cat("groups", study="homo"), "material": _cat("groups", study="material"),
                    "hetero": _cat("groups", study="hetero"),
@@ -231,8 +225,8 @@ GRAPH.node("ablation", "stages.force.study:ablation_study",
 
 # -- control: the transferred force model in a gripper's loop --------------------------------
 GRAPH.node("control", "stages.control.nodes:control_node",
-           inputs={"model": "transfer[source={model_pair[0]},target={model_pair[1]}]",
-                   "supervised": "own[skin={model_pair[1]}]", "patterns": "patterns"},
+           inputs={"model": "transfer[source={model_pair[0]},target={model_pair[1]},seed={seed0[0]}]",
+                   "supervised": "own[skin={model_pair[1]},seed={seed0[0]}]", "patterns": "patterns"},
            params={"model_pair": "control.model_pair", "objects": "control.objects",
                    "grasp": "control.grasp", "slip": "control.slip",
                    # the fingers carry the model's target skin: its gel, look and segmentation
@@ -242,7 +236,9 @@ GRAPH.node("control", "stages.control.nodes:control_node",
                    "reference_seed": "control.reference_seed",
                    "tolerance_N": "control.tolerance_N",
                    # the gripper twin's skins are the twin's: no control run on the authors' data
-                   "twin": Wiring("stages.catalogue:twin_data", {"data_source": "data.source"})},
+                   "twin": Wiring("stages.catalogue:twin_data", {"data_source": "data.source"}),
+                   # the models of the first regressor seed
+                   "seed0": Wiring("stages.catalogue:first_seed", {"seeds": "force.seeds"})},
            description="study control (paper Fig. 7): grasping at a target force, slip avoidance")
 
 # -- the answer first: the studies' test figures beside the paper's ------------------------

@@ -3,10 +3,12 @@ artifact, so its tables, heatmaps, radar plots and traces sit side by side in th
 
 `transfer_study` (nodes `homo`, `material`, `hetero`) runs stages.m2m.study.image_study (FID/KID
 before / m2m / flow_warp) and stages.force.study.force_study (source_only / genforce /
-genforce_comp / genforce_plus / oracle) over the study's (source, target) pairs, on the test
-indenters (`<study>/...`) and on the validation indenters (`<study>_val/...`).  `groups` names subsets of
-pairs (the material study's hard_to_soft and soft_to_hard, paper Fig. 5E-F) whose means are
-reported as `<study>/<group>/<method>/<metric>`, beside the all-pairs `<study>/mean/...`.
+genforce_comp / genforce_plus / oracle, each trained from every seed of `force.seeds`) over the
+study's (source, target) pairs, on the test indenters (`<study>/...`) and on the validation
+indenters (`<study>_val/...`).  `groups` names subsets of pairs (the material study's
+hard_to_soft and soft_to_hard, paper Fig. 5E-F) whose means are reported as
+`<study>/<group>/<method>/<metric>`, beside the all-pairs `<study>/mean/...`; a force metric is
+the mean over seeds, beside its standard deviation over seeds `<metric>_sd`.
 """
 from __future__ import annotations
 
@@ -46,10 +48,11 @@ def transfer_study(*, study: str, groups: Mapping[str, list], features: Mapping,
                          warped=warped, kid_subset=kid_subset, markers=markers)
     force = force_study(study=study, pairs=pairs, own=own, transfer=transfer, markers=markers,
                         test_indenters=test_indenters, val_indenters=val_indenters,
-                        trace_frames=trace_frames)
-    metrics = {**images.pop("metrics"), **force.pop("metrics")}
-    if len(groups) > 1:
+                        trace_frames=trace_frames, groups=groups if len(groups) > 1 else None)
+    metrics = images.pop("metrics")
+    if len(groups) > 1:                  # the force metrics' group means come with their seed spread
         metrics.update(group_means(metrics, study, groups))
+    metrics.update(force.pop("metrics"))
     figures = {**{f"images_{k}": v for k, v in images.pop("figures").items()},
                **{f"force_{k}": v for k, v in force.pop("figures").items()}}
     attrs = {"images": images.pop("attrs"), "force": force.pop("attrs"),

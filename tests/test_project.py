@@ -182,28 +182,30 @@ def test_a_sensor_copied_under_a_new_name_joins_its_family(tmp_path):
     inst = graph.expand(P.load(tmp_path / "params.yaml", None, [], tmp_path / "params"))
     added = sorted(set(inst) - set(base))
     new = "gelsight-B-I"
-    assert f"render[skin={new}]" in added and f"markers[skin={new}]" in added and f"own[skin={new}]" in added
+    assert f"render[skin={new}]" in added and f"markers[skin={new}]" in added
+    assert {f"own[skin={new},seed={k}]" for k in (0, 1, 2)} <= set(added)
     assert inst[f"render[skin={new}]"].inputs["deform"] == "deform[sensor=gelsight-r10]"
     assert not any(n.startswith(("deform[", "calibrate[")) for n in added)
     assert new in inst["m2m"].params["skins"]
     homo = {tuple(p) for g in inst["homo"].params["groups"].values() for p in g}
     assert {("gelsight-A-II", new), (new, "gelsight-A-II")} <= homo
-    assert f"transfer[source={new},target=gelsight-A-II]" in added
+    assert f"transfer[source={new},target=gelsight-A-II,seed=0]" in added
 
 
 def test_the_ablation_runs_only_when_named():
-    """`pipeline run` with no target leaves out the ablation and the seeds it alone needs; named,
-    it gathers every transfer pair's seeds."""
+    """`pipeline run` with no target leaves out the ablation; named, it gathers every transfer
+    pair's models of every regressor seed (3 or more), which the studies read too."""
     project = find_project(ROOT)
     params = P.load(project.params_file, None, [], project.profiles_dir)
     graph = project.load_graph()
     inst = graph.expand(params)
     default = set(graph.closure(inst, graph.select(inst, None)))
-    assert not any(n == "ablation" or n.startswith("transfer_seed[") for n in default)
+    assert "ablation" not in default
     named = set(graph.closure(inst, graph.select(inst, ["ablation"])))
-    seeds = [n for n in named if n.startswith("transfer_seed[")]
-    pairs = [n for n in inst if n.startswith("transfer[")]
-    assert len(seeds) == len(pairs) * len(params["ablation"]["seeds"]) and 0 not in params["ablation"]["seeds"]
+    transfers = sorted(n for n in named if n.startswith("transfer["))
+    assert transfers == sorted(n for n in inst if n.startswith("transfer[")) and set(transfers) <= default
+    assert len(params["force"]["seeds"]) >= 3
+    assert len(transfers) == len({n.rsplit(",seed=", 1)[0] for n in transfers}) * len(params["force"]["seeds"])
 
 
 @pytest.fixture(scope="module")
@@ -279,8 +281,8 @@ SAME_IN_EVERY_EXECUTOR = [
     "taxels[skin=uskin-3axis]", "markers[skin=Array1]", "features[skin=Array1]",
     "flow_warp[source=Array1,target=Array2]", "m2m_sim", "m2m",
     "translate_sim[source=Array1,target=Array2]", "translate[source=gelsight-A-I,target=gelsight-A-II]",
-    "own[skin=gelsight-A-II]"]
-LEFT_TO_A_WHOLE_RUN = {"transfer", "transfer_seed", "ablation", "sim_m2m", "homo", "material", "hetero",
+    "own[skin=gelsight-A-II,seed=0]"]
+LEFT_TO_A_WHOLE_RUN = {"transfer", "ablation", "sim_m2m", "homo", "material", "hetero",
                        "control", "summary", "capture", "capture_calibration", "ingest", "authors_calibration"}
 
 
@@ -394,7 +396,7 @@ def test_transfers_compensate_with_a_captured_calibration(ci_store):
     from pipeline.artifact import Artifact
     from stages.common import attrs_of
     store, _ = ci_store
-    target = "transfer[source=gelsight-A-II,target=tactip]"
+    target = "transfer[source=gelsight-A-II,target=tactip,seed=0]"
 
     def attrs(*args):
         path = pipeline("get", target, "--profile", "ci", "--store", store, *args).stdout.strip()

@@ -1,5 +1,5 @@
-"""The force regressor's training nodes: own[skin], transfer[source,target] and
-transfer_seed[source,target,seed].
+"""The force regressor's training nodes: own[skin,seed] and transfer[source,target,seed], one
+instance per regressor seed of `force.seeds`.
 
 `config` is the regressor's config (model.DEFAULT_CONFIG keys) plus the training keys of
 TRAIN_DEFAULTS.  Trained models are stored as arrays (model.to_arrays) under a group
@@ -211,38 +211,3 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
                       "history": kept},
             "timing": timing,
             "figures": figures}
-
-
-def fit_transfer_seed(*, transfer: Mapping, translated: Mapping, seed: int, config: Mapping,
-                      steps: int, batch_size: int, lr: float, finetune_steps: int,
-                      train_indenters: Sequence[str] | None = None, source: str = "", target: str = "",
-                      checkpoint: str | None = None) -> dict:
-    """Node `transfer_seed[source,target,seed]`: `transfer`'s genforce_comp trained again from
-    another seed, on the same translation with the same compensated labels (the curves
-    `transfer` records) and the same two-stage schedule: the seeds the ablation's spread is
-    measured over.  source, target: the fan-out's values, which `transfer` records too.
-    Returns genforce_comp weights and attrs {config, source, target, seed, history}."""
-    from stages.force.model import to_arrays
-    from stages.force.train import fit_two_stage, make_sequences
-    info = attrs_of(transfer)
-    name = f"transfer[{info['source']}->{info['target']}] seed {seed}"
-    model_cfg, train = split_config(config)
-    runs = contact_runs(translated, train_indenters)
-    if not runs:
-        raise ValueError(f"{name}: no translated contacts to train on")
-    reference = np.asarray(translated["reference"])
-    force = compensated_labels(translated, info["curves"])
-    seqs = make_sequences(read_runs(translated, "images", runs), [force[a:b] for a, b in runs],
-                          reference, model_cfg)
-    ckpt = _checkpoint(checkpoint)
-    model, history = fit_two_stage(seqs, model_cfg, steps=int(steps), finetune_steps=int(finetune_steps),
-                                   batch_size=int(batch_size), lr=float(lr), seed=int(seed),
-                                   seq_len=int(train["seq_len"]),
-                                   finetune_lr_factor=float(train["finetune_lr_factor"]), desc=name,
-                                   checkpoint=ckpt, label="seed")
-    model.set_reference(reference)
-    kept, timing = _split_timing(history, ckpt)
-    return {"genforce_comp": to_arrays(model),
-            "attrs": {"config": model.config, "train": train, "source": info["source"],
-                      "target": info["target"], "seed": int(seed), "history": kept},
-            "timing": timing}

@@ -39,29 +39,68 @@ def check_splits(train: Sequence[str] | None, val: Sequence[str], test: Sequence
             raise InputError(f"{name}: indenters {both} are in both the {a} and the {b} split")
 
 
-def _models(own, transfer, source, target, load):
-    tr = transfer[f"source={source},target={target}"]
-    return {"source_only": load(own[source], "weights"), "genforce": load(tr, "genforce"),
+def seeds_of(own: Mapping[str, Mapping], transfer: Mapping[str, Mapping]) -> list[int]:
+    """The regressor seeds the inputs hold (own labelled "skin=..,seed=..", transfer
+    "source=..,target=..,seed=.."), the same for both, in order."""
+    def found(table):
+        return sorted({int(dict(part.split("=", 1) for part in label.split(","))["seed"]) for label in table})
+    seeds = found(own)
+    if not seeds or found(transfer) != seeds:
+        raise ValueError(f"force study: own holds seeds {seeds}, transfer {found(transfer)}: "
+                         "every method needs the same seeds")
+    return seeds
+
+
+def _models(own, transfer, source, target, seed, load):
+    tr = transfer[f"source={source},target={target},seed={seed}"]
+    return {"source_only": load(own[f"skin={source},seed={seed}"], "weights"), "genforce": load(tr, "genforce"),
             "genforce_comp": load(tr, "genforce_comp"), "genforce_plus": load(tr, "genforce_plus"),
-            "oracle": load(own[target], "weights")}
+            "oracle": load(own[f"skin={target},seed={seed}"], "weights")}
+
+
+def seed_statistics(per_seed: Sequence[Mapping[str, float]], prefix: str,
+                    groups: Mapping[str, Sequence[str]]) -> dict[str, float]:
+    """Means over seeds, and their spread, of a study's force metrics.  per_seed: one mapping
+    per regressor seed of `<prefix>/<pair>/<method>/<metric>`; groups: name -> pair labels
+    ("mean" is every pair).  Returns per pair and per group `<prefix>/<row>/<method>/<metric>`,
+    the mean over seeds (a group's: of the mean over its pairs), and `<...>/<metric>_sd`, the
+    standard deviation over seeds (ddof 1; with one seed, none)."""
+    out: dict[str, float] = {}
+    names = sorted(per_seed[0])
+    rows: dict[str, list[str]] = {name.split("/")[1]: [name.split("/")[1]] for name in names}
+    rows.update({g: list(p) for g, p in groups.items()})
+    leaves = sorted({tuple(name.split("/")[2:]) for name in names})
+    for row, pairs in rows.items():
+        for method, metric in leaves:
+            keys = [f"{prefix}/{p}/{method}/{metric}" for p in pairs]
+            if not all(k in per_seed[0] for k in keys):
+                continue
+            values = np.array([np.mean([m[k] for k in keys]) for m in per_seed])
+            out[f"{prefix}/{row}/{method}/{metric}"] = float(values.mean())
+            if len(values) > 1:
+                out[f"{prefix}/{row}/{method}/{metric}_sd"] = float(values.std(ddof=1))
+    return out
 
 
 def force_study(*, study: str, pairs: Sequence[Sequence[str]], own: Mapping[str, Mapping],
                 transfer: Mapping[str, Mapping], markers: Mapping[str, Mapping],
                 test_indenters: Sequence[str], val_indenters: Sequence[str],
-                trace_frames: int = 1000) -> dict:
-    """The force part of nodes homo / material / hetero: METHODS per pair, scored on the
-    target's validation and test contacts.  Metrics `<study>[_val]/<source>_<target>/<method>/
-    <metric>` and `<study>[_val]/mean/<method>/<metric>`.  Arrays mae/<method> (pairs, 4: fx, fy,
-    fz, total) and r2/<method> (pairs, 3) of the test split, pairs, sources, targets, trace/*;
-    figures radar (MAE), r2_hist, trace, violin (test split)."""
+                trace_frames: int = 1000, groups: Mapping[str, Sequence[Sequence[str]]] | None = None) -> dict:
+    """The force part of nodes homo / material / hetero: METHODS per pair and regressor seed,
+    scored on the target's validation and test contacts.  Metrics `<study>[_val]/<row>/<method>/
+    <metric>` for every pair (`<source>_<target>`), `mean` (all pairs) and each of `groups`,
+    the mean over seeds, each beside its `<metric>_sd` over seeds (seed_statistics).  Arrays
+    mae/<method> (pairs, 4: fx, fy, fz, total) and r2/<method> (pairs, 3) of the test split,
+    means over seeds, pairs, sources, targets, trace/*; figures radar (MAE), r2_hist, trace and
+    violin (test split; the trace and violin of the first seed)."""
     from stages.common import torch_threads
     with torch_threads():
         return _force_study(study, [(str(s), str(t)) for s, t in pairs], own, transfer, markers,
-                            list(test_indenters), list(val_indenters), int(trace_frames))
+                            list(test_indenters), list(val_indenters), int(trace_frames), groups or {})
 
 
-def _force_study(study, pairs, own, transfer, markers, test_indenters, val_indenters, trace_frames) -> dict:
+def _force_study(study, pairs, own, transfer, markers, test_indenters, val_indenters, trace_frames,
+                 groups) -> dict:
     from stages.common import torch_device
     from stages.force.metrics import METRICS, force_metrics
     from stages.force.model import load_model, predict_contacts
@@ -75,41 +114,47 @@ def _force_study(study, pairs, own, transfer, markers, test_indenters, val_inden
 
     if not pairs:
         raise ValueError(f"force_study[{study}]: no pairs")
+    seeds = seeds_of(own, transfer)
     for s, t in pairs:
-        for name, table, key in (("own", own, s), ("own", own, t), ("markers", markers, t),
-                                 ("transfer", transfer, f"source={s},target={t}")):
-            if key not in table:
-                raise KeyError(f"force_study[{study}]: {name} has no {key!r} (pair {s} -> {t})")
-        check_splits(attrs_of(transfer[f"source={s},target={t}"]).get("train_indenters"),
+        for seed in seeds:
+            for name, table, key in (("own", own, f"skin={s},seed={seed}"), ("own", own, f"skin={t},seed={seed}"),
+                                     ("transfer", transfer, f"source={s},target={t},seed={seed}")):
+                if key not in table:
+                    raise KeyError(f"force_study[{study}]: {name} has no {key!r} (pair {s} -> {t})")
+        if t not in markers:
+            raise KeyError(f"force_study[{study}]: markers has no {t!r} (pair {s} -> {t})")
+        check_splits(attrs_of(transfer[f"source={s},target={t},seed={seeds[0]}"]).get("train_indenters"),
                      val_indenters, test_indenters, f"force_study[{study}] {s} -> {t}")
     splits = {study: test_indenters, f"{study}_val": val_indenters}
     sets: dict = {}
-    metrics: dict = {}
+    per_seed = {prefix: [{} for _ in seeds] for prefix in splits}
     per_pair: list[dict] = []
     for s, t in pairs:
-        models = _models(own, transfer, s, t, load)
-        for prefix, indenters in splits.items():
-            key = (t, prefix)
-            if key not in sets:
-                sets[key] = scoring_set(markers[t], indenters, "validation" if prefix.endswith("_val") else "test")
-            data = sets[key]
-            preds = {m: predict(models[m], data) for m in METHODS}
-            scores = {m: force_metrics(preds[m], data["force"]) for m in METHODS}
-            for m in METHODS:
-                for k, v in scores[m].items():
-                    metrics[f"{prefix}/{s}_{t}/{m}/{k}"] = v
-            if prefix == study:
-                per_pair.append({"source": s, "target": t, "scores": scores,
-                                 "errors": {m: preds[m] - data["force"] for m in METHODS}, "preds": preds})
+        for i, seed in enumerate(seeds):
+            models = _models(own, transfer, s, t, seed, load)
+            for prefix, indenters in splits.items():
+                key = (t, prefix)
+                if key not in sets:
+                    sets[key] = scoring_set(markers[t], indenters, "validation" if prefix.endswith("_val") else "test")
+                data = sets[key]
+                preds = {m: predict(models[m], data) for m in METHODS}
+                scores = {m: force_metrics(preds[m], data["force"]) for m in METHODS}
+                for m in METHODS:
+                    for k, v in scores[m].items():
+                        per_seed[prefix][i][f"{prefix}/{s}_{t}/{m}/{k}"] = v
+                if prefix == study and i == 0:
+                    per_pair.append({"source": s, "target": t,
+                                     "errors": {m: preds[m] - data["force"] for m in METHODS}, "preds": preds})
+    labels = [f"{s}_{t}" for s, t in pairs]
+    rows = {"mean": labels, **{g: [f"{a}_{b}" for a, b in p] for g, p in groups.items()}}
+    metrics: dict = {}
     for prefix in splits:
-        for m in METHODS:
-            for k in METRICS:
-                metrics[f"{prefix}/mean/{m}/{k}"] = float(np.mean(
-                    [metrics[f"{prefix}/{s}_{t}/{m}/{k}"] for s, t in pairs]))
-    mae = {m: np.array([[p["scores"][m][f"mae_{a}"] for a in AXES] for p in per_pair]) for m in METHODS}
-    r2 = {m: np.array([[p["scores"][m][k] for k in ("r2_fx", "r2_fy", "r2_fz")] for p in per_pair])
+        metrics.update(seed_statistics(per_seed[prefix], prefix, rows))
+    mae = {m: np.array([[metrics[f"{study}/{p}/{m}/mae_{a}"] for a in AXES] for p in labels]) for m in METHODS}
+    r2 = {m: np.array([[metrics[f"{study}/{p}/{m}/{k}"] for k in ("r2_fx", "r2_fy", "r2_fz")] for p in labels])
           for m in METHODS}
-    labels = [f"{p['source']}_{p['target']}" for p in per_pair]
+    for p, row in zip(per_pair, labels):
+        p["scores"] = {m: {k: metrics[f"{study}/{row}/{m}/{k}"] for k in METRICS} for m in METHODS}
     # representative pair: the median genforce_comp total MAE
     rep = per_pair[int(np.argsort(mae["genforce_comp"][:, 3])[(len(per_pair) - 1) // 2])]
     test = sets[(rep["target"], study)]
@@ -123,32 +168,32 @@ def _force_study(study, pairs, own, transfer, markers, test_indenters, val_inden
             "targets": [p["target"] for p in per_pair], "trace": trace, "figures": figures,
             "metrics": metrics,
             "attrs": {"study": study, "test_indenters": test_indenters, "val_indenters": val_indenters,
-                      "trace_pair": [rep["source"], rep["target"]],
+                      "seeds": seeds, "trace_pair": [rep["source"], rep["target"]],
                       "test_frames": {t: int(len(v["force"])) for (t, p), v in sets.items() if p == study},
                       "val_frames": {t: int(len(v["force"])) for (t, p), v in sets.items() if p != study}}}
 
 
 # ------------------------------------------------------------------------------- ablation
 
-def _seed_models(seeds: Mapping[str, Mapping], source: str, target: str) -> list[tuple[int, Mapping]]:
-    """(seed, artifact) of `seeds` (transfer_seed, keyed "source=..,target=..,seed=..") trained
-    for source -> target, in seed order."""
+def _seed_models(transfer: Mapping[str, Mapping], source: str, target: str) -> list[tuple[int, Mapping]]:
+    """(seed, artifact) of the transfers (keyed "source=..,target=..,seed=..") trained for
+    source -> target, in seed order."""
     found = []
-    for key, art in seeds.items():
+    for key, art in transfer.items():
         fields = dict(part.split("=", 1) for part in key.split(","))
         if fields.get("source") == source and fields.get("target") == target:
-            found.append((int(fields.get("seed", attrs_of(art).get("seed", 0))), art))
+            found.append((int(fields["seed"]), art))
     return sorted(found, key=lambda x: x[0])
 
 
 def ablation_study(*, homo: Mapping, material: Mapping, hetero: Mapping, transfer: Mapping[str, Mapping],
-                   seeds: Mapping[str, Mapping], translated: Mapping[str, Mapping],
+                   translated: Mapping[str, Mapping],
                    markers: Mapping[str, Mapping], val_indenters: Sequence[str],
                    train_indenters: Sequence[str], pairs: int, additions: Sequence[str]) -> dict:
     """Node `ablation`: what each addition of genforce_plus earns, on the validation indenters.
 
-    For every study (`homo`, `material`, `hetero`: its groups of pairs) and every seed's genforce_comp model of each pair (the
-    transfer's, seed from its config, and `seeds`', at least 3 in all), genforce_plus is
+    For every study (`homo`, `material`, `hetero`: its groups of pairs) and every seed's
+    genforce_comp model of each pair (the transfers of `force.seeds`, at least 3), genforce_plus is
     rebuilt with all `additions` and with each one left out in turn (stages.force.plus.apply,
     on the transfer's location-paired frames), and scored on the target's validation contacts.
     With m(s, v) the mean over the study's pairs of the validation MAE (total) of variant v
@@ -169,7 +214,7 @@ def ablation_study(*, homo: Mapping, material: Mapping, hetero: Mapping, transfe
         pairs_of = [[str(s), str(t)] for group in groups.values() for s, t in group]
         studies[study] = [p for k, p in enumerate(pairs_of) if p not in pairs_of[:k]]
     with torch_threads():
-        return _ablation(studies, transfer, seeds, translated, markers, list(val_indenters),
+        return _ablation(studies, transfer, translated, markers, list(val_indenters),
                          list(train_indenters), int(pairs), additions)
 
 
@@ -192,7 +237,7 @@ def ablation_metrics(study: str, scores: Mapping[str, np.ndarray], additions: Se
     return out
 
 
-def _ablation(studies, transfer, seeds, translated, markers, val_indenters, train_indenters, pairs,
+def _ablation(studies, transfer, translated, markers, val_indenters, train_indenters, pairs,
               additions) -> dict:
     from stages.force import plus
     from stages.force.fit import compensated_labels
@@ -205,11 +250,12 @@ def _ablation(studies, transfer, seeds, translated, markers, val_indenters, trai
         scores: dict[str, list] = {v: [] for v in variants}        # variant -> per pair: per seed
         for s, t in study_pairs:
             key = f"source={s},target={t}"
-            for name, table in (("transfer", transfer), ("translated", translated)):
-                if key not in table:
-                    raise KeyError(f"ablation[{study}]: {name} has no {key!r}")
-            tr = transfer[key]
-            info = attrs_of(tr)
+            if key not in translated:
+                raise KeyError(f"ablation[{study}]: translated has no {key!r}")
+            trained = _seed_models(transfer, s, t)
+            if not trained:
+                raise KeyError(f"ablation[{study}]: transfer has no {key!r}")
+            info = attrs_of(trained[0][1])
             overlap = sorted(set(info.get("train_indenters") or ()) & set(val_indenters))
             if overlap:
                 from stages.common import InputError
@@ -219,8 +265,7 @@ def _ablation(studies, transfer, seeds, translated, markers, val_indenters, trai
             val = sets[t]
             paired = plus.paired_frames(translated[key], markers[t], compensated_labels(translated[key], info["curves"]),
                                         train_indenters, pairs)
-            models = [load_model(tr, "genforce_comp")] + [load_model(a, "genforce_comp")
-                                                          for _, a in _seed_models(seeds, s, t)]
+            models = [load_model(a, "genforce_comp") for _, a in trained]
             if scores["all"] and len(models) != len(scores["all"][0]):
                 raise ValueError(f"ablation[{study}]: {s} -> {t} has {len(models)} seed models, the "
                                  f"study's other pairs {len(scores['all'][0])}")

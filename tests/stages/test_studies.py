@@ -31,8 +31,10 @@ def test_transfer_study_keeps_its_parts_timings_out_of_the_content(monkeypatch):
                 "attrs": {"pairs": len(kw["pairs"])}, "timing": {"seconds": 4.25}}
 
     def force_study(**kw):
+        seen["force_pairs"], seen["groups"] = kw["pairs"], kw["groups"]
         return {"mae": [[0.5]], "figures": {"radar": b"png"}, "metrics": {"s/a_b/genforce/mae_total": 0.5,
-                                                                        "s/b_a/genforce/mae_total": 1.5},
+                                                                        "s/two/genforce/mae_total": 1.0,
+                                                                        "s/two/genforce/mae_total_sd": 0.25},
                 "attrs": {"study": "s"}}
     monkeypatch.setattr(m2m_nodes, "image_study", image_study)
     monkeypatch.setattr(force_study_module, "force_study", force_study)
@@ -44,4 +46,6 @@ def test_transfer_study_keeps_its_parts_timings_out_of_the_content(monkeypatch):
     assert out["images"] == {"fid": [[1.0]]} and out["force"] == {"mae": [[0.5]]}
     assert out["timing"] == {"images": {"seconds": 4.25}}
     assert out["figures"] == {"images_fid": b"png", "force_radar": b"png"}
-    assert out["metrics"]["s/two/genforce/mae_total"] == 1.0 and out["metrics"]["s/one/genforce/mae_total"] == 0.5
+    # the force metrics' group rows come from force_study, with their seed spread (seed_statistics)
+    assert seen["groups"] == {"one": [["a", "b"]], "two": [["b", "a"], ["a", "b"]]}
+    assert out["metrics"]["s/two/genforce/mae_total_sd"] == 0.25 and "s/one/genforce/mae_total" not in out["metrics"]

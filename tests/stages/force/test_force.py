@@ -12,7 +12,7 @@ from stages.force import plus
 from stages.force.compensation import Curves, compensate, curves_from_calibration, fit_curves, label_scale, loading_mask
 from stages.force.data import contact_runs, predict_rows
 from stages.force.figures import METHODS
-from stages.force.fit import fit_own, fit_transfer, fit_transfer_seed
+from stages.force.fit import fit_own, fit_transfer
 from stages.force.metrics import METRICS, force_metrics
 from stages.force.model import (ForceRegressor, StreamingPredictor, from_arrays, load_model, load_predictor,
                                 model_config, predict_contacts, predict_sequence, mirror_group, resolve_range,
@@ -402,24 +402,11 @@ def test_predict_rows_reads_each_row_in_its_whole_contact(trained):
     np.testing.assert_allclose(predict_rows(model, art, rows), full[rows], rtol=1e-5, atol=1e-6)
 
 
-def test_transfer_seed_reproduces_the_transfers_comp_model_at_its_seed(nodes_out, skins, tiny_config):
-    """transfer_seed at the transfer's own seed trains the same labels on the same frames: its
-    model is the transfer's genforce_comp, bit for bit; another seed gives another model."""
-    _, _, stiffer = nodes_out
-    kw = dict(transfer=stiffer, translated=skins["A"], config={**tiny_config, "seq_len": 10}, steps=4,
-              batch_size=2, lr=0.05, finetune_steps=0, train_indenters=["sphere", "prism"])
-    same = fit_transfer_seed(seed=0, **kw)
-    for k, v in stiffer["genforce_comp"].items():
-        np.testing.assert_array_equal(same["genforce_comp"][k], v, err_msg=k)
-    other = fit_transfer_seed(seed=1, **kw)
-    assert other["attrs"]["seed"] == 1 and (other["attrs"]["source"], other["attrs"]["target"]) == ("B", "A")
-    assert any(not np.array_equal(v, other["genforce_comp"][k]) for k, v in stiffer["genforce_comp"].items())
-
-
 def test_force_study_scores_every_method_on_validation_and_test(nodes_out, skins):
     own, same, stiffer = nodes_out
-    out = force_study(study="s", pairs=[["A", "B"], ["B", "A"]], own=own,
-                      transfer={"source=A,target=B": same, "source=B,target=A": stiffer},
+    out = force_study(study="s", pairs=[["A", "B"], ["B", "A"]],
+                      own={f"skin={k},seed=3": v for k, v in own.items()},
+                      transfer={"source=A,target=B,seed=3": same, "source=B,target=A,seed=3": stiffer},
                       markers=skins, test_indenters=["torus"], val_indenters=["cone"], trace_frames=20)
     m = out["metrics"]
     # every method's prediction on the target's torus (test) and cone (validation) contacts, by hand
@@ -435,14 +422,43 @@ def test_force_study_scores_every_method_on_validation_and_test(nodes_out, skins
             assert m[f"{prefix}/mean/genforce/{k}"] == pytest.approx(
                 np.mean([m[f"{prefix}/A_B/genforce/{k}"], m[f"{prefix}/B_A/genforce/{k}"]]))
     assert set(METHODS) == {"source_only", "genforce", "genforce_comp", "genforce_plus", "oracle"}
-    assert len(m) == 2 * (2 + 1) * len(METHODS) * len(METRICS)
+    assert len(m) == 2 * (2 + 1) * len(METHODS) * len(METRICS)          # one seed: no spread
+    assert out["attrs"]["seeds"] == [3]
     assert out["mae"]["genforce_plus"].shape == (2, 4) and out["r2"]["oracle"].shape == (2, 3)
     assert out["attrs"]["val_frames"] == {"B": 42, "A": 42} and out["attrs"]["test_frames"]["A"] == 42
     for name in ("radar", "r2_hist", "trace", "violin"):
         assert bytes(out["figures"][name][:8]) == PNG
     with pytest.raises(InputError, match=r"indenters \['prism'\] are in both the train and the validation split"):
-        force_study(study="s", pairs=[["B", "A"]], own=own, transfer={"source=B,target=A": stiffer},
+        force_study(study="s", pairs=[["B", "A"]], own={f"skin={k},seed=0": v for k, v in own.items()},
+                    transfer={"source=B,target=A,seed=0": stiffer},
                     markers=skins, test_indenters=["torus"], val_indenters=["prism"])
+    with pytest.raises(ValueError, match=r"own holds seeds \[0, 1\], transfer \[0\]: every method needs the same seeds"):
+        force_study(study="s", pairs=[["B", "A"]],
+                    own={f"skin={k},seed={i}": v for k, v in own.items() for i in (0, 1)},
+                    transfer={"source=B,target=A,seed=0": stiffer},
+                    markers=skins, test_indenters=["torus"], val_indenters=["cone"])
+
+
+def test_seed_statistics_on_a_stub_study():
+    """Per pair and per group: the mean over seeds of the metric (a group's: of its pairs'
+    mean) and `_sd`, the standard deviation over seeds (ddof 1), of the MAE and R2 axes."""
+    from stages.force.study import seed_statistics
+    per_seed = [{"s/a_b/genforce/mae_fz": 1.0, "s/b_a/genforce/mae_fz": 3.0, "s/a_b/genforce/r2_fz": 0.5,
+                 "s/b_a/genforce/r2_fz": 0.7},
+                {"s/a_b/genforce/mae_fz": 2.0, "s/b_a/genforce/mae_fz": 2.0, "s/a_b/genforce/r2_fz": 0.6,
+                 "s/b_a/genforce/r2_fz": 0.6},
+                {"s/a_b/genforce/mae_fz": 1.5, "s/b_a/genforce/mae_fz": 4.5, "s/a_b/genforce/r2_fz": 0.3,
+                 "s/b_a/genforce/r2_fz": 0.9}]
+    out = seed_statistics(per_seed, "s", {"mean": ["a_b", "b_a"], "one": ["b_a"]})
+    assert out["s/mean/genforce/mae_fz"] == pytest.approx(14 / 6)               # seeds' means 2, 2, 3
+    assert out["s/mean/genforce/mae_fz_sd"] == pytest.approx(np.std([2.0, 2.0, 3.0], ddof=1))
+    assert out["s/one/genforce/mae_fz"] == pytest.approx(9.5 / 3)
+    assert out["s/one/genforce/mae_fz_sd"] == pytest.approx(np.std([3.0, 2.0, 4.5], ddof=1))
+    assert out["s/a_b/genforce/r2_fz"] == pytest.approx(1.4 / 3)
+    assert out["s/a_b/genforce/r2_fz_sd"] == pytest.approx(np.std([0.5, 0.6, 0.3], ddof=1))
+    assert out["s/mean/genforce/r2_fz_sd"] == pytest.approx(0.0, abs=1e-12)     # every seed's mean 0.6
+    assert len(out) == 4 * 2 * 2
+    assert "s/mean/genforce/mae_fz_sd" not in seed_statistics(per_seed[:1], "s", {"mean": ["a_b", "b_a"]})
 
 
 def test_splits_must_be_disjoint_and_not_empty():
