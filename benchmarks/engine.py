@@ -3,7 +3,8 @@
 1. no-op `pipeline run` on a 100-node synthetic DAG vs no-op `dvc repro` on the dvc.yaml
    exported from the same DAG (target <= 0.2)
 2. store write and read throughput vs bare h5py on the same arrays, chunks and compression
-   (target >= 0.7)
+   without checksums, as the store wrote them before (target >= 0.7); and what the store's
+   Fletcher32 checksums cost, bare h5py with them against bare h5py without
 3. scheduling overhead per trivial node over 1000 nodes (target <= 5 ms/node), printed beside
    the floor bare h5py sets on the same machine (each node's HDF5 create + fsync and its
    inputs' opens), which is most of it
@@ -126,13 +127,14 @@ def bench_store(tmp: Path, n_frames: int, repeat: int) -> dict:
         w.commit()
         return store.path("k")
 
-    def bare_write(i):
-        path = tmp / f"bare{i}.h5"
+    def bare_write(i, checksum=False):
+        path = tmp / f"bare{i}{'-f32' if checksum else ''}.h5"
+        f32 = {"fletcher32": True} if checksum else {}
         with h5py.File(path, "w") as f:
             d1 = f.create_dataset("images", shape=(0, 256, 256), maxshape=(None, 256, 256), dtype=np.uint8,
-                                  chunks=(rows, 256, 256), compression="lzf")
+                                  chunks=(rows, 256, 256), compression="lzf", **f32)
             d2 = f.create_dataset("force", shape=(0, 3), maxshape=(None, 3), dtype=np.float32,
-                                  chunks=(4096, 3), compression="lzf")
+                                  chunks=(4096, 3), compression="lzf", **f32)
             for s in range(0, n_frames, step):
                 for d, a in ((d1, frames[s:s + step]), (d2, force[s:s + step])):
                     n = d.shape[0]
@@ -150,18 +152,22 @@ def bench_store(tmp: Path, n_frames: int, repeat: int) -> dict:
             imgs = f["images"]
             return sum(int(imgs[s:s + step][:, 0, 0].sum()) for s in range(0, len(imgs), step))
 
-    res = {"w_ours": [], "w_bare": [], "r_ours": [], "r_bare": []}
-    for i in range(repeat):  # interleaved, so drift hits both alike
+    res = {"w_ours": [], "w_bare": [], "w_f32": [], "r_ours": [], "r_bare": [], "r_f32": []}
+    for i in range(repeat):  # interleaved, so drift hits all alike
         t0 = time.perf_counter(); p_ours = ours_write(i); res["w_ours"].append(time.perf_counter() - t0)
         t0 = time.perf_counter(); p_bare = bare_write(i); res["w_bare"].append(time.perf_counter() - t0)
+        t0 = time.perf_counter(); p_f32 = bare_write(i, True); res["w_f32"].append(time.perf_counter() - t0)
         t0 = time.perf_counter(); a = ours_read(p_ours); res["r_ours"].append(time.perf_counter() - t0)
         t0 = time.perf_counter(); b = bare_read(p_bare); res["r_bare"].append(time.perf_counter() - t0)
-        assert a == b
+        t0 = time.perf_counter(); c = bare_read(p_f32); res["r_f32"].append(time.perf_counter() - t0)
+        assert a == b == c
     med = {k: statistics.median(v) for k, v in res.items()}
     return {"MB": mb, "write_MBps_ours": mb / med["w_ours"], "write_MBps_bare": mb / med["w_bare"],
             "write_ratio": med["w_bare"] / med["w_ours"],
             "read_MBps_ours": mb / med["r_ours"], "read_MBps_bare": mb / med["r_bare"],
-            "read_ratio": med["r_bare"] / med["r_ours"]}
+            "read_ratio": med["r_bare"] / med["r_ours"],
+            "write_MBps_f32": mb / med["w_f32"], "write_f32_ratio": med["w_bare"] / med["w_f32"],
+            "read_MBps_f32": mb / med["r_f32"], "read_f32_ratio": med["r_bare"] / med["r_f32"]}
 
 
 def bench_overhead(tmp: Path, n_nodes: int) -> dict:
@@ -220,6 +226,10 @@ def main() -> None:
          store["write_ratio"], ">= 0.7"),
         ("store read: ours vs bare h5py (MB/s)", f"{store['read_MBps_ours']:.0f} / {store['read_MBps_bare']:.0f}",
          store["read_ratio"], ">= 0.7"),
+        ("  Fletcher32's cost, write: bare with / without (MB/s)",
+         f"{store['write_MBps_f32']:.0f} / {store['write_MBps_bare']:.0f}", store["write_f32_ratio"], ""),
+        ("  Fletcher32's cost, read: bare with / without (MB/s)",
+         f"{store['read_MBps_f32']:.0f} / {store['read_MBps_bare']:.0f}", store["read_f32_ratio"], ""),
         (f"scheduling, {over['nodes']} trivial nodes (ms/node, all)", f"{over['run_s']:.2f} s total",
          over["ms_per_node"], "<= 5"),
         ("  of which outside node functions+writes (ms/node)", "", over["ms_per_node_outside_nodes"], ""),
@@ -232,7 +242,8 @@ def main() -> None:
     for name, measured, ratio, target in rows:
         print(f"{name:52s} {measured:28s} {ratio:8.3f}  {target}")
         record("engine", name.strip(), measured, ratio, target)
-    print(f"(store arrays: {store['MB']:.0f} MB of 256x256 marker frames + forces, lzf, same chunks)")
+    print(f"(store arrays: {store['MB']:.0f} MB of 256x256 marker frames + forces, lzf, same chunks; "
+          "the store's carry Fletcher32 checksums, the bare ones not)")
 
 
 if __name__ == "__main__":

@@ -95,6 +95,18 @@ def test_the_cli_refuses_an_out_of_range_value_in_one_line_and_builds_nothing(tm
     assert not store.exists()
 
 
+@pytest.mark.parametrize("key,digits,message", [
+    ("m2m.pretrain.steps", 400, "must be <= 10000000 (range 'm2m.*.steps'"),
+    ("force.lr", 400, "must be a finite number, got an integer of 400 digits"),
+    ("force.lr", 5000, "value out of range in override 'force.lr=999"),
+])
+def test_a_huge_number_in_a_param_is_one_line(key, digits, message):
+    """Before: an int or float param given 400 nines died in an OverflowError traceback."""
+    p = pipeline("status", "--profile", "ci", "-p", f"{key}={'9' * digits}", check=False)
+    assert p.returncode == 2 and p.stderr.count("\n") == 1 and "Traceback" not in p.stderr
+    assert message in p.stderr and len(p.stderr) < 400, p.stderr
+
+
 def _ranges() -> dict:
     from pipeline.params import safe_load
     return safe_load((ROOT / "params.ranges.yaml").read_text())
