@@ -50,8 +50,12 @@ GRAPH.node("calibration_trajectory", "stages.sim.trajectory:calibration_trajecto
 
 # -- marker representation ----------------------------------------------------------------
 GRAPH.node("patterns", "stages.markers.patterns:reference_set",
-           params={"names": "patterns.names", "size": "patterns.image_size", "seed": "patterns.twin_seed"},
-           description="reference marker images: 12 sim patterns, GelSight twins, TacTip, uSkin")
+           params={"names": "patterns.names", "size": "patterns.image_size", "seed": "patterns.twin_seed",
+                   # the patterns read from image files (a sensor's pattern, patterns.dir), checksummed
+                   "files": Listing("stages.markers.pattern_files:pattern_files",
+                                    {"sensors": "sensors", "pattern_dir": "patterns.dir", "names": "patterns.names"})},
+           description="reference marker images: 12 sim patterns, GelSight twins, TacTip, uSkin, "
+                       "and the patterns of image files")
 
 # -- simulation twin: deformation and force labels ---------------------------------------
 GRAPH.node("deform", "stages.sim.deform:deform_sequence",

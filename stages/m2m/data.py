@@ -97,3 +97,24 @@ def paired_table(markers: Mapping, skins: Sequence[str], indenters: Sequence[str
         raise ValueError(f"no location-paired frame of indenters {list(indenters)} is shared by skins {list(skins)}")
     rows = np.array([[lk[f] for f in frames.tolist()] for lk in lookup], np.int64)
     return frames, rows
+
+
+# References that differ in no more than this fraction of their pixels are one marker style.
+# One layout on other gels (the material twins, a re-fabricated gel) differs by camera noise at
+# the markers' edges: up to 0.2% of the pixels of the default profile's references at M2M's
+# size; two layouts, even GelSight A-I against A-II (moved by 0.3 mm), by 4% and more.
+SAME_STYLE_FRACTION = 0.01
+
+
+def same_style(a: np.ndarray, b: np.ndarray, tolerance: float = SAME_STYLE_FRACTION) -> bool:
+    """Whether two no-contact reference images (binary, same shape) show one marker style."""
+    a, b = np.asarray(a) > 0, np.asarray(b) > 0
+    return a.shape == b.shape and float(np.mean(a != b)) <= tolerance
+
+
+def styles(references: Sequence[np.ndarray], tolerance: float = SAME_STYLE_FRACTION) -> list[int]:
+    """For each reference, the index of the first reference of its style (itself if it is new)."""
+    out: list[int] = []
+    for i, ref in enumerate(references):
+        out.append(next((j for j in sorted(set(out)) if same_style(references[j], ref, tolerance)), i))
+    return out

@@ -9,7 +9,7 @@ import numpy as np
 
 from stages.common import attrs_of, torch_threads
 from stages.figures import contact_sheet, figure_png, png
-from stages.m2m.data import paired_table, read_rows
+from stages.m2m.data import paired_table, read_rows, styles
 
 N_EXAMPLES = 4          # rows of the examples figure
 
@@ -53,23 +53,22 @@ def _samples_sheet(translator, images: np.ndarray, refs: np.ndarray, seed: int) 
     return contact_sheet(tiles, cols=3)
 
 
-def _distinct_references(skins: Sequence[str], refs: np.ndarray, title: str) -> None:
-    """The generator knows a target only by its reference image: two skins drawn alike would
-    teach it two answers to one question."""
-    seen = {}
-    for skin, ref in zip(skins, refs):
-        key = ref.tobytes()
-        if key in seen:
-            raise ValueError(f"{title}: skins {seen[key]!r} and {skin!r} have identical reference "
-                             f"images, so the translator cannot tell them apart as targets; draw "
-                             f"one differently (its pattern, or base_area for a taxel skin)")
-        seen[key] = skin
+def _one_per_style(skins: Sequence[str], images: np.ndarray, refs: np.ndarray):
+    """The skins of distinct marker styles (stages.m2m.data.styles), their images and
+    references, and {skin: the skin whose style it shares} for the rest.  The generator knows a
+    target only by its reference, so sensors of one layout are one target: the first of them
+    stands for the style, and a translation between them is the identity (translate_sequence)."""
+    first = styles(list(refs))
+    keep = [i for i, j in enumerate(first) if i == j]
+    merged = {skins[i]: skins[j] for i, j in enumerate(first) if i != j}
+    return [skins[i] for i in keep], images[keep], refs[keep], merged
 
 
 def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_size, lr, seed,
            title, checkpoint=None, groups=()):
     from stages.m2m.model import Translator, state_arrays
     from stages.m2m.train import GroupBatches, PairBatches, fit
+    merged: dict[str, str] = {}
     if groups:          # frames are paired within each group only (GroupBatches)
         missing = sorted(set(skins) - {s for g in groups for s in g})
         if missing:
@@ -77,14 +76,21 @@ def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_
         parts = []
         for group in groups:
             _, group_rows = paired_table(markers, group, train_indenters, per_skin)
-            parts.append((group, *_paired_arrays(markers, group, group_rows, config["size"])))
-        _distinct_references([s for g, _, _ in parts for s in g], np.concatenate([r for _, _, r in parts]), title)
+            kept, ims, rfs, same = _one_per_style(list(group), *_paired_arrays(markers, group, group_rows,
+                                                                                config["size"]))
+            merged.update(same)
+            if len(kept) > 1:                           # one style alone: nothing to translate
+                parts.append((kept, ims, rfs))
         frames = np.zeros(sum(im.shape[1] for _, im, _ in parts))
+        if not parts:
+            return _untrained(net, config, skins, train_indenters, steps, batch_size, lr, seed, merged)
         images, refs = parts[0][1], parts[0][2]           # the samples figure shows the first group
     else:
         frames, rows = paired_table(markers, skins, train_indenters, per_skin)
-        images, refs = _paired_arrays(markers, skins, rows, config["size"])
-        _distinct_references(skins, refs, title)
+        kept, images, refs, merged = _one_per_style(list(skins), *_paired_arrays(markers, skins, rows,
+                                                                                  config["size"]))
+        if len(kept) < 2:
+            return _untrained(net, config, skins, train_indenters, steps, batch_size, lr, seed, merged)
     with torch_threads():
         batches = (GroupBatches([PairBatches(im, rf, seed + k) for k, (_, im, rf) in enumerate(parts)],
                                 [len(g) for g, _, _ in parts], seed) if groups else PairBatches(images, refs, seed))
@@ -102,10 +108,23 @@ def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_
                   "pairs": int(len(frames)), "steps": int(steps), "batch_size": int(batch_size),
                   "lr": float(lr), "seed": int(seed),
                   "final_loss": float(np.mean(tail)) if len(tail) else float("nan"),
-                  "parameters": int(sum(v.size for v in weights.values()))},
+                  "parameters": int(sum(v.size for v in weights.values())),
+                  **({"same_style": merged} if merged else {})},
         "timing": {"seconds": round(hist["seconds"], 2), "steps_per_s": round(hist["steps_per_s"], 3),
                    "resumed_at_step": int(hist["resumed_at"])},
     }
+
+
+def _untrained(net, config, skins, train_indenters, steps, batch_size, lr, seed, merged) -> dict:
+    """Every skin of one marker style: there is nothing to translate, so the weights stay."""
+    from stages.m2m.model import state_arrays
+    weights = state_arrays(net)
+    return {"weights": weights, "loss": np.zeros(0, np.float32), "figures": {},
+            "attrs": {"config": config, "skins": list(skins), "train_indenters": list(train_indenters),
+                      "pairs": 0, "steps": 0, "batch_size": int(batch_size), "lr": float(lr),
+                      "seed": int(seed), "final_loss": float("nan"),
+                      "parameters": int(sum(v.size for v in weights.values())), "same_style": merged},
+            "timing": {"seconds": 0.0, "steps_per_s": 0.0, "resumed_at_step": 0}}
 
 
 def pretrain(*, markers: Mapping, skins: list[str], train_indenters: list[str], size, steps: int,
@@ -132,6 +151,8 @@ def finetune(*, base, markers: Mapping, skins: list[str], train_indenters: list[
     frames shared by `skins`, evenly spread over the training indenters' frames.  `groups`
     (lists of skins): frames are paired within each group alone, a step's examples all drawn
     from one group (the authors' sets, each collected along its own contacts); empty: one group.
+    Skins of one marker style are one target, the first of them standing for it (attrs
+    same_style: skin -> that first one); a group of one style trains nothing.
     checkpoint: as pretrain's."""
     from stages.m2m.model import build, weights_of
     config = attrs_of(base)["config"]

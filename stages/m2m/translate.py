@@ -101,16 +101,24 @@ def translate_sequence(*, model, source_markers, target_markers, eval_indenters:
     `train_indenters` (what `transfer` trains on; None: none) and the scored frames of each
     split.  Returns the target's reference, features and eval_frames of each split's scored
     frames, figures/examples and attrs.  source, target: the skins' names (the fan-out's
-    values)."""
+    values).  Two skins of one marker style (stages.m2m.data.same_style: one layout, the
+    material study's gels) translate as the identity (attrs same_style), as M2M fine-tunes
+    them as one target."""
+    from stages.m2m.data import same_style
     from stages.m2m.model import load_translator
-    translator = load_translator(model)
     src_ref = np.asarray(source_markers["reference"], np.uint8)
     tgt_ref = np.asarray(target_markers["reference"], np.uint8)
-    with torch_threads():
-        convert = lambda im: translator.translate(im, src_ref, tgt_ref, int(sampler_steps))
+    identity = same_style(src_ref, tgt_ref)     # one marker layout: the paper's method is then
+    with torch_threads():                       # the source's images with compensated labels
+        if identity:
+            convert = lambda im: np.asarray(im, np.uint8)
+        else:
+            translator = load_translator(model)
+            convert = lambda im: translator.translate(im, src_ref, tgt_ref, int(sampler_steps))
         result = yield from _stream(source_markers, target_markers, eval_indenters, val_indenters, n_eval,
                                     convert, "m2m", train_indenters=train_indenters)
-    result["attrs"].update(sampler_steps=int(sampler_steps), source=source, target=target)
+    result["attrs"].update(sampler_steps=int(sampler_steps), source=source, target=target,
+                           **({"same_style": True} if identity else {}))
     return result
 
 

@@ -297,11 +297,13 @@ def marker_texture(markers: MarkerSet, *, size=(568, 568), supersample: int = 4)
     return _coverage(markers, size, supersample)
 
 
-def reference_set(names, *, size, gelsight_twins=GELSIGHT_TWINS, seed: int = 0) -> dict:
+def reference_set(names, *, size, gelsight_twins=GELSIGHT_TWINS, seed: int = 0, files=None) -> dict:
     """Node `patterns`: reference marker images of the simulation patterns and sensor twins.
 
     Per pattern: `images/<name>` (H,W) uint8 0/255 and `markers/<name>/centers|axes|angles`
-    in mm on the undeformed pad.
+    in mm on the undeformed pad.  files (stages.markers.pattern_files.pattern_files): name ->
+    {path, pad_mm, polarity} of the patterns read from image files (stages.markers.pattern_image),
+    which replace a drawing of the same name (patterns.dir) or join the set.
     """
     from stages.common import InputError
     from stages.figures import contact_sheet, png
@@ -311,6 +313,10 @@ def reference_set(names, *, size, gelsight_twins=GELSIGHT_TWINS, seed: int = 0) 
     sets.update({f"gelsight-{t}": gelsight_pattern(t, seed=seed) for t in gelsight_twins})
     sets["tactip"] = tactip_pattern()
     sets["uskin"] = uskin_pattern()
+    if files:
+        from stages.markers.pattern_image import load_pattern
+        for name, f in files.items():
+            sets[name] = load_pattern(f["path"], pad_size_mm=tuple(f["pad_mm"]), polarity=f["polarity"])
     h, w = size
     images = {n: rasterize(m, size=(h, w)) for n, m in sets.items()}
     return {
@@ -319,5 +325,7 @@ def reference_set(names, *, size, gelsight_twins=GELSIGHT_TWINS, seed: int = 0) 
         "markers": {n: {"centers": m.centers, "axes": m.axes, "angles": m.angles,
                         "pad_size_mm": np.asarray(m.pad_size_mm, float)} for n, m in sets.items()},
         "figures": {"patterns": png(contact_sheet(list(images.values()), cols=6))},
-        "attrs": {"image_size": [h, w]},
+        "attrs": {"image_size": [h, w],
+                  **({"files": {n: {"path": f["path"], "sha256": f["sha256"]} for n, f in files.items()}}
+                     if files else {})},
     }

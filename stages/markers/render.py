@@ -272,7 +272,11 @@ def _get(art: Mapping, path: str):
 
 
 def marker_set(patterns: Mapping, name: str) -> MarkerSet:
-    """The MarkerSet stored as markers/<name>/centers|axes|angles|pad_size_mm."""
+    """The MarkerSet stored as markers/<name>/centers|axes|angles|pad_size_mm (a pattern
+    image file's under its stages.markers.pattern_files.image_pattern_name)."""
+    from stages.markers.pattern_files import image_pattern_name, is_image_path
+    if is_image_path(name):
+        name = image_pattern_name(name)
     try:
         parts = {k: _get(patterns, f"markers/{name}/{k}")
                  for k in ("centers", "axes", "angles", "pad_size_mm")}

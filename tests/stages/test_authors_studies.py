@@ -222,3 +222,28 @@ def test_a_study_without_its_set_is_one_line_and_runs_nothing(homo_run):
     assert p.stderr == (f"pipeline: error: node material: data.root: the modulus set needs at least two sensors "
                         f"for a transfer study, found none under {root}/training\n")
     assert sorted(os.listdir(store / "objects")) == before
+
+
+def test_a_material_study_of_one_marker_layout_runs(tmp_path):
+    """Before: two modulus gels of one layout (identical reference images, as ratio_6 and
+    ratio_18 are here) stopped M2M's fine-tune, and with it every study.  Now they are one
+    style: the fine-tune trains nothing for them, their translation is the identity, and the
+    material study reports every method."""
+    from pipeline.artifact import Artifact
+    from stages.common import attrs_of
+    root = tmp_path / "dataset"
+    truth = fx.write_dataset(root, sets={"modulus": {"ratio_6": {}, "ratio_18": {}}},
+                             indenters={"modulus": INDENTERS}, points=(1,))
+    assert np.array_equal(fx.mask("ratio_6", "", 0, -1), fx.mask("ratio_18", "", 0, -1)) and len(truth) == 2
+    data = ["--profile", "ci", "-p", "data.source=authors", "-p", f"data.root={root}", "--store", str(tmp_path / "store")]
+    p = _cli("run", "material", *data)
+    assert p.returncode == 0, p.stderr[-3000:]
+    with Artifact(_cli("get", "m2m", *data).stdout.strip()) as art:
+        assert attrs_of(art)["same_style"] == {"ratio_18": "ratio_6"} and attrs_of(art)["steps"] == 0
+    with Artifact(_cli("get", "translate[source=ratio_6,target=ratio_18]", *data).stdout.strip()) as art:
+        assert attrs_of(art)["same_style"] is True
+    metrics = json.loads(_cli("metrics", "--json", *data).stdout)
+    for m in ("source_only", "genforce", "genforce_comp", "genforce_plus", "oracle"):
+        for row in ("ratio_6_ratio_18", "ratio_18_ratio_6", "mean", "hard_to_soft", "soft_to_hard"):
+            assert np.isfinite(metrics[f"material/{row}/{m}/mae_total"]), (row, m)
+        assert metrics[f"material/mean/{m}/mae_total_sd"] >= 0

@@ -163,11 +163,40 @@ def test_finetune_starts_from_the_base_and_uses_few_pairs(skins, trained):
     assert 0 < change < 0.01              # 5 small steps away from the pretrained weights
 
 
-def test_finetune_refuses_two_skins_drawn_alike(skins, trained):
-    twin = dict(skins, Copy3=skins["Circle3"])
-    with pytest.raises(ValueError, match="skins 'Circle3' and 'Copy3' have identical reference images"):
-        fit.finetune(base=trained, markers=twin, skins=["Array3", "Circle3", "Copy3"],
-                       train_indenters=["sphere"], pairs_per_skin=3, steps=5, batch_size=4, lr=1e-4, seed=1)
+def test_skins_of_one_marker_style_are_one_target(skins, trained):
+    """Before: two skins with identical references stopped the fine-tune.  Now a copy (and a
+    near copy: a few pixels flipped, as a re-fabricated gel) is the style of the first: the
+    fine-tune trains on the same frames as without them, bit for bit, and names them in its
+    attrs; a set of one style alone trains nothing."""
+    near = np.array(skins["Circle3"]["reference"], np.uint8)
+    near.flat[np.random.default_rng(0).choice(near.size, max(1, near.size // 400), replace=False)] ^= 255
+    twin = dict(skins, Copy3=skins["Circle3"], Near3={**skins["Circle3"], "reference": near})
+    kw = dict(base=trained, train_indenters=["sphere"], pairs_per_skin=3, steps=5, batch_size=4, lr=1e-4, seed=1)
+    plain = fit.finetune(markers=skins, skins=["Array3", "Circle3"], **kw)
+    both = fit.finetune(markers=twin, skins=["Array3", "Circle3", "Copy3", "Near3"], **kw)
+    assert both["attrs"]["same_style"] == {"Copy3": "Circle3", "Near3": "Circle3"}
+    for k, v in plain["weights"].items():
+        np.testing.assert_array_equal(both["weights"][k], v, err_msg=k)
+    alone = fit.finetune(markers=twin, skins=["Circle3", "Copy3"], **kw)
+    assert alone["attrs"]["steps"] == 0 and alone["attrs"]["same_style"] == {"Copy3": "Circle3"}
+    for k, v in trained["weights"].items():
+        np.testing.assert_array_equal(alone["weights"][k], v, err_msg=k)
+    grouped = fit.finetune(markers=twin, skins=["Array3", "Circle3", "Copy3"],
+                           groups=[["Circle3", "Copy3"], ["Array3", "Circle3"]], **kw)
+    assert grouped["attrs"]["same_style"] == {"Copy3": "Circle3"} and grouped["attrs"]["steps"] == 5
+
+
+def test_a_translation_within_one_marker_style_is_the_identity(skins, trained):
+    from stages.m2m.translate import translate_sequence
+    from tests.helpers import drain
+    src = skins["Circle3"]
+    chunks, out = drain(translate_sequence(model=trained, source_markers=src, target_markers=dict(src),
+                                           eval_indenters=["wave"], n_eval=4, train_indenters=["sphere"]))
+    images = np.concatenate([c["images"] for c in chunks])
+    rows = np.concatenate([c["frame"] for c in chunks])
+    at = {int(f): i for i, f in enumerate(np.asarray(src["frame"]))}
+    np.testing.assert_array_equal(images, np.asarray(src["images"])[[at[int(f)] for f in rows]])
+    assert out["attrs"]["same_style"] is True
 
 
 def test_image_study_metrics_matrices_and_figures():
