@@ -5,7 +5,8 @@ The image spans the sensor's pad (as the drawn patterns' rasters do: stages.mark
 whatever its size.  It is segmented as the looks' frames are (stages.markers.segment.segment:
 background difference, per-marker threshold), markers white on black (`bright`, the default)
 or dark on light (`dark`: a lit GelSight gel), and every connected marker becomes the ellipse
-with the same centroid and second moments, in mm on the pad.  So a pattern image is geometry
+with the same centroid and second moments, in mm on the pad (a marker the image's border cuts to
+less than half the typical size is left out).  So a pattern image is geometry
 like a drawn pattern: the renderer deforms it, and `rasterize` redraws it at any size.
 """
 from __future__ import annotations
@@ -52,9 +53,12 @@ def markers_from_image(img: np.ndarray, *, pad_size_mm, polarity: str = "bright"
     pw, ph = (float(v) for v in pad_size_mm)
     sx, sy = pw / w, ph / h                               # mm per px along x and y
     centers, axes, angles = [], [], []
+    x0, y0, bw, bh, area = (stats[1:, i] for i in range(5))
+    edge = (x0 == 0) | (y0 == 0) | (x0 + bw == w) | (y0 + bh == h)
+    typical = float(np.median(area)) if len(area) else 0.0
     for k in range(1, n):
-        if stats[k, cv2.CC_STAT_AREA] < min_area:
-            continue
+        if area[k - 1] < min_area or (edge[k - 1] and area[k - 1] < 0.5 * typical):
+            continue                     # noise, or a marker the image's border cuts
         ys, xs = np.nonzero(labels == k)
         x, y = (xs + 0.5) * sx - pw / 2, (ys + 0.5) * sy - ph / 2
         cx, cy = x.mean(), y.mean()

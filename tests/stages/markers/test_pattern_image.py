@@ -128,3 +128,13 @@ def test_the_patterns_node_reads_a_folder_and_a_sensors_file(tmp_path):
     assert p.returncode == 2 and p.stderr.count("\n") == 1
     assert f"patterns.dir {folder}: no Array3.jpg, .jpeg or .png" in p.stderr
     assert json.loads(_cli("ls", "--json", "--store", store).stdout)        # the store is intact
+
+
+def test_a_marker_the_border_cuts_is_left_out(tmp_path):
+    """The authors' Array3.jpg has two slivers of markers at its right edge: not markers."""
+    drawn = pattern("Array3")
+    img = rasterize(drawn, size=(400, 400))
+    img[190:200, 397:] = 255                                            # a sliver at the border
+    img[100:104, 0:6] = 255
+    got = load_pattern(_save(tmp_path / "cut.png", img), pad_size_mm=drawn.pad_size_mm)
+    assert len(got) == len(drawn)
