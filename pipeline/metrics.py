@@ -21,7 +21,11 @@ HIGHER_IS_BETTER = ("r2", "iou", "success", "accuracy", "speedup")
 
 
 def higher_is_better(name: str) -> bool:
+    """r2, iou, success...: higher is better; a spread (`<metric>_sd`) is better lower, as
+    every other metric."""
     leaf = name.rsplit("/", 1)[-1]
+    if leaf.endswith("_sd"):
+        return False
     return any(leaf == h or leaf.startswith(h + "_") for h in HIGHER_IS_BETTER)
 
 

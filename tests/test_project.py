@@ -43,7 +43,7 @@ def test_the_readme_is_a_manual_that_opens_with_the_two_commands():
         assert (ROOT / image).is_file(), image
 
 
-@pytest.mark.parametrize("profile", ["default", "ci", "paper", "allpairs"])
+@pytest.mark.parametrize("profile", ["default", "ci", "paper", "allpairs", "seeds"])
 def test_profiles_load(profile):
     project = find_project(ROOT)
     assert project.ranges_file == ROOT / "params.ranges.yaml"
@@ -171,7 +171,7 @@ def test_allpairs_adds_pairs_and_changes_nothing_else():
     for study, skins in twins.items():
         assert pairs(every[study]) == set(permutations(skins, 2)), study
         assert pairs(base[study]) <= pairs(every[study]), study
-    assert len([n for n in every if n.startswith("transfer[")]) == 20 + 6 + 6
+    assert len({n.rsplit(",seed=", 1)[0] for n in every if n.startswith("transfer[")}) == 20 + 6 + 6
     patterns = every["m2m_sim"].params["skins"]
     assert {tuple(p) for p in every["sim_m2m"].params["pairs"]} == set(permutations(patterns, 2))
     assert len([n for n in every if n.startswith("translate_sim[")]) == 132
@@ -208,7 +208,7 @@ def test_the_ablation_runs_only_when_named():
     """`pipeline run` with no target leaves out the ablation; named, it gathers every transfer
     pair's models of every regressor seed (3 or more), which the studies read too."""
     project = find_project(ROOT)
-    params = P.load(project.params_file, None, [], project.profiles_dir)
+    params = P.load(project.params_file, "seeds", [], project.profiles_dir)
     graph = project.load_graph()
     inst = graph.expand(params)
     default = set(graph.closure(inst, graph.select(inst, None)))
@@ -266,7 +266,7 @@ def test_a_worse_model_fails_the_baseline(ci_store):
                  str(ROOT / "baselines" / "ci.yaml"), check=False)
     assert p.returncode == 1
     rows = {line.split()[1]: line for line in p.stdout.splitlines() if line.startswith(("ok", "REGRESSION"))}
-    for name in ("hetero/mean/oracle/mae_fy", "hetero/mean/source_only/r2_fy", "hetero/mean/genforce/mae_total"):
+    for name in ("homo/mean/oracle/mae_fy", "hetero/mean/source_only/r2_fz", "hetero/mean/genforce/mae_total"):
         assert rows[name].startswith("REGRESSION") and "missing" not in rows[name], rows[name]
     assert rows["segment/tactip/iou"].startswith("ok") and rows["hetero/mean/m2m/fid"].startswith("ok")
 

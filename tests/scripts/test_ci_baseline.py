@@ -38,3 +38,8 @@ def test_the_gate_allows_k_spreads_in_the_metrics_direction(tmp_path):
     path.write_text("k: -1\nmetrics: {a: 1.0}\n")
     with pytest.raises(PipelineError, match="'k' must be a number >= 0, got -1"):
         M.load_baseline(path)
+
+
+def test_a_spread_is_better_lower_whatever_its_metric():
+    assert M.higher_is_better("h/mean/oracle/r2_fz") and not M.higher_is_better("h/mean/oracle/r2_fz_sd")
+    assert not M.higher_is_better("h/mean/oracle/mae_fz_sd") and M.higher_is_better("segment/x/iou")

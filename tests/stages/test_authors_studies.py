@@ -136,6 +136,8 @@ TWIN_INPUTS = {
                  "target_calibration": "calibrate[sensor={target_spec[body]}]",
                  "target_markers": "markers[skin={target}]"},
     **{s: {"markers": "markers[skin=@members]"} for s in ("homo", "material", "hetero")},
+    "control": {"model": "transfer[source={model_pair[0]},target={model_pair[1]},seed=0]",
+                "supervised": "own[skin={model_pair[1]},seed=0]"},
 }
 SPECS = {"source_spec": "sensors.{source}", "target_spec": "sensors.{target}"}
 
