@@ -17,7 +17,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from store_lookup import REPO, artifact_path  # noqa: E402
 
 
-BEGIN, END = "<!-- results: python scripts/results.py -->", "<!-- /results -->"
+BEGIN, END = "<!-- results: python scripts/results.py --profile seeds -->", "<!-- /results -->"
 
 
 def _markdown(path: str) -> str:
