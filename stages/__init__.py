@@ -12,6 +12,7 @@ import sys
 
 # numpy >= 2.4's dispatched x86 feature groups (numpy.show_runtime); the baseline is X86_V2
 NUMPY_DISPATCH_OFF = "X86_V3 X86_V4 AVX512_ICL AVX512_SPR"
+X86_64 = platform.machine().lower() in ("x86_64", "amd64")   # where the kernels are pinned
 
-if platform.machine().lower() in ("x86_64", "amd64") and "numpy" not in sys.modules:
+if X86_64 and "numpy" not in sys.modules:
     os.environ.setdefault("NPY_DISABLE_CPU_FEATURES", NUMPY_DISPATCH_OFF)

@@ -131,13 +131,12 @@ def numpy_kernels_fixed() -> None:
     before `stages` set NPY_DISABLE_CPU_FEATURES (stages/__init__.py), e.g. in a Dask worker
     started without it, and the node's floats would differ in their last bits from another
     machine's under the same cache key."""
-    import platform
-    if platform.machine().lower() not in ("x86_64", "amd64"):
+    from stages import NUMPY_DISPATCH_OFF, X86_64
+    if not X86_64:
         return
     from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
     on = [f for f in __cpu_dispatch__ if __cpu_features__.get(f)]
     if on:
-        from stages import NUMPY_DISPATCH_OFF
         raise KernelChoiceError(
             f"numpy runs CPU-specific kernels ({', '.join(on)}) in this process: start it (a Dask "
             f"worker: its environment) with NPY_DISABLE_CPU_FEATURES='{NUMPY_DISPATCH_OFF}', or "

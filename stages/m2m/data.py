@@ -114,7 +114,11 @@ def same_style(a: np.ndarray, b: np.ndarray, tolerance: float = SAME_STYLE_FRACT
 
 def styles(references: Sequence[np.ndarray], tolerance: float = SAME_STYLE_FRACTION) -> list[int]:
     """For each reference, the index of the first reference of its style (itself if it is new)."""
-    out: list[int] = []
+    firsts: list[int] = []
+    out = []
     for i, ref in enumerate(references):
-        out.append(next((j for j in sorted(set(out)) if same_style(references[j], ref, tolerance)), i))
+        j = next((j for j in firsts if same_style(references[j], ref, tolerance)), None)
+        if j is None:
+            firsts.append(j := i)
+        out.append(j)
     return out

@@ -82,28 +82,31 @@ def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_
             if len(kept) > 1:                           # one style alone: nothing to translate
                 parts.append((kept, ims, rfs))
         frames = np.zeros(sum(im.shape[1] for _, im, _ in parts))
-        if not parts:
-            return _untrained(net, config, skins, train_indenters, steps, batch_size, lr, seed, merged)
-        images, refs = parts[0][1], parts[0][2]           # the samples figure shows the first group
+        trainable = bool(parts)
+        if trainable:
+            images, refs = parts[0][1], parts[0][2]       # the samples figure shows the first group
     else:
         frames, rows = paired_table(markers, skins, train_indenters, per_skin)
         kept, images, refs, merged = _one_per_style(list(skins), *_paired_arrays(markers, skins, rows,
                                                                                   config["size"]))
-        if len(kept) < 2:
-            return _untrained(net, config, skins, train_indenters, steps, batch_size, lr, seed, merged)
-    with torch_threads():
-        batches = (GroupBatches([PairBatches(im, rf, seed + k) for k, (_, im, rf) in enumerate(parts)],
-                                [len(g) for g, _, _ in parts], seed) if groups else PairBatches(images, refs, seed))
-        hist = fit(net, config, batches, steps=int(steps), batch_size=int(batch_size), lr=float(lr),
-                   seed=int(seed), progress=title, checkpoint=checkpoint)
-        weights = state_arrays(net)
-        samples = _samples_sheet(Translator(config, weights), images, refs, seed)
+        trainable = len(kept) > 1
+    if trainable:
+        with torch_threads():
+            batches = (GroupBatches([PairBatches(im, rf, seed + k) for k, (_, im, rf) in enumerate(parts)],
+                                    [len(g) for g, _, _ in parts], seed) if groups else PairBatches(images, refs, seed))
+            hist = fit(net, config, batches, steps=int(steps), batch_size=int(batch_size), lr=float(lr),
+                       seed=int(seed), progress=title, checkpoint=checkpoint)
+            weights = state_arrays(net)
+            samples = _samples_sheet(Translator(config, weights), images, refs, seed)
+        figures = {"loss": figure_png(_loss_figure(hist["loss"], title)), "samples": png(samples)}
+    else:       # every skin of one marker style: nothing to translate, so the weights stay
+        steps, weights, figures = 0, state_arrays(net), {}
+        hist = {"loss": np.zeros(0, np.float32), "seconds": 0.0, "steps_per_s": 0.0, "resumed_at": 0}
     tail = hist["loss"][-max(1, len(hist["loss"]) // 20):]
     return {
         "weights": weights,
         "loss": hist["loss"],
-        "figures": {"loss": figure_png(_loss_figure(hist["loss"], title)),
-                    "samples": png(samples)},
+        "figures": figures,
         "attrs": {"config": config, "skins": list(skins), "train_indenters": list(train_indenters),
                   "pairs": int(len(frames)), "steps": int(steps), "batch_size": int(batch_size),
                   "lr": float(lr), "seed": int(seed),
@@ -113,18 +116,6 @@ def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_
         "timing": {"seconds": round(hist["seconds"], 2), "steps_per_s": round(hist["steps_per_s"], 3),
                    "resumed_at_step": int(hist["resumed_at"])},
     }
-
-
-def _untrained(net, config, skins, train_indenters, steps, batch_size, lr, seed, merged) -> dict:
-    """Every skin of one marker style: there is nothing to translate, so the weights stay."""
-    from stages.m2m.model import state_arrays
-    weights = state_arrays(net)
-    return {"weights": weights, "loss": np.zeros(0, np.float32), "figures": {},
-            "attrs": {"config": config, "skins": list(skins), "train_indenters": list(train_indenters),
-                      "pairs": 0, "steps": 0, "batch_size": int(batch_size), "lr": float(lr),
-                      "seed": int(seed), "final_loss": float("nan"),
-                      "parameters": int(sum(v.size for v in weights.values())), "same_style": merged},
-            "timing": {"seconds": 0.0, "steps_per_s": 0.0, "resumed_at_step": 0}}
 
 
 def pretrain(*, markers: Mapping, skins: list[str], train_indenters: list[str], size, steps: int,

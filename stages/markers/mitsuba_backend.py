@@ -103,8 +103,9 @@ def render_target(backend: str) -> dict:
         raise InputError(f"render.backend {backend!r}: expected one of {', '.join(check)}")
     if backend == "scalar":
         return {"backend": "scalar"}
+    from stages import X86_64
     lib = find_libllvm()
-    if platform.machine().lower() in ("x86_64", "amd64"):
+    if X86_64:
         runs = set(PINNED_NEEDS) <= _cpu_flags()
         target = "/".join(map(str, PINNED_TARGET))
     else:       # no pinned target elsewhere: the key names the machine kind the kernels are built for
@@ -177,7 +178,8 @@ def llvm_target() -> tuple[str, str, int]:
 def pin_llvm_target() -> None:
     """Compile Dr.Jit's LLVM kernels for PINNED_TARGET on x86-64 (once the llvm variant is
     set: the backend must have started); elsewhere the host's target stays."""
-    if platform.machine().lower() not in ("x86_64", "amd64"):
+    from stages import X86_64
+    if not X86_64:
         return
     if llvm_target() != PINNED_TARGET:
         cpu, features, width = PINNED_TARGET

@@ -16,7 +16,6 @@ import os
 import numpy as np
 
 from stages.common import InputError
-from stages.markers.pattern_files import POLARITIES
 from stages.markers.patterns import MarkerSet
 
 
@@ -41,8 +40,6 @@ def markers_from_image(img: np.ndarray, *, pad_size_mm, polarity: str = "bright"
     marker's centroid and second moments, the image spanning `pad_size_mm` (w, h)."""
     import cv2
     from stages.markers.segment import segment
-    if polarity not in POLARITIES:
-        raise InputError(f"{what}: pattern_polarity must be one of {', '.join(POLARITIES)}, got {polarity!r}")
     img = np.asarray(img)
     gray = img if img.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY)
     if int(gray.max()) - int(gray.min()) < 16:
