@@ -23,6 +23,12 @@ default-profile size.  Columns are torch thread counts.  Rows:
   plus x 40 Hz        the same against a 40 Hz sensor
   cpu/wall            process CPU time over wall time while training: about the thread count
                       on an idle machine, lower when other processes share the cores
+  bare frames/s       the same network, batch shape and optimiser in a bare torch loop (fixed
+                      full-length windows drawn from tensors already in memory; no window
+                      sampling, padding, gradient clipping, learning-rate schedule or
+                      progress bar), timed in the same run
+  fit / bare          train frames/s over bare frames/s: what stages.force.train.fit's recipe
+                      costs beside the network itself
 """
 import argparse
 import json
@@ -65,6 +71,32 @@ def step_ms(predictor, images) -> float:
     return 1e3 * float(np.median(lat[10:]))
 
 
+def bare_loop(threads, config, steps, seqs) -> float:
+    """Frames/s of a bare training loop of the same network: full SEQ_LEN windows of BATCH
+    contacts, SGD with the profile's momentum and weight decay, L1 loss."""
+    from stages.force.model import ForceRegressor
+    cfg = {**config, "force_min": [-5.0, -5.0, -20.0], "force_max": [5.0, 5.0, 5.0]}
+    with torch_threads(threads):
+        torch.manual_seed(0)
+        model = ForceRegressor(cfg).to(torch_device()).train()
+        opt = torch.optim.SGD(model.parameters(), lr=0.05, momentum=0.9, weight_decay=5e-4)
+        x = torch.stack([s.inputs[:SEQ_LEN] for s in seqs[:BATCH]]).to(torch_device())
+        y = torch.rand(BATCH, SEQ_LEN, 3, device=x.device)
+
+        def step():
+            loss = torch.nn.functional.l1_loss(model(x)[0], y)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            return loss
+        for _ in range(3):
+            step()                                                           # warm-up
+        t = time.perf_counter()
+        for _ in range(steps):
+            step().item()
+        return steps * BATCH * SEQ_LEN / (time.perf_counter() - t)
+
+
 def bench(threads, config, steps, contacts=30, length=50):
     """(the mirror images the model reads a frame with, {row: figure})."""
     rng = np.random.default_rng(0)
@@ -76,6 +108,7 @@ def bench(threads, config, steps, contacts=30, length=50):
     cpu, wall = time.process_time(), time.perf_counter()
     model, hist = fit(seqs, config, steps=steps, **kw)
     cpu_ratio = (time.process_time() - cpu) / (time.perf_counter() - wall)
+    bare = bare_loop(threads, config, steps, seqs)
     model.set_reference(ref)
     with torch_threads(threads):
         cid = np.repeat(np.arange(contacts), length)
@@ -91,7 +124,8 @@ def bench(threads, config, steps, contacts=30, length=50):
     return plus.mirrors_for(ref), {"train samples/s": hist["samples_per_s"], "train frames/s": hist["frames_per_s"],
             f"{FIT_STEPS}-step fit (s)": FIT_STEPS * hist["seconds"] / steps, "predict frames/s": predict_fps,
             "stream ms/frame": ms, "x 40 Hz": 1e3 / SENSOR_HZ / ms,
-            "plus ms/frame": ms_plus, "plus x 40 Hz": 1e3 / SENSOR_HZ / ms_plus, "cpu/wall": cpu_ratio}
+            "plus ms/frame": ms_plus, "plus x 40 Hz": 1e3 / SENSOR_HZ / ms_plus, "cpu/wall": cpu_ratio,
+            "bare frames/s": bare, "fit / bare": hist["frames_per_s"] / bare}
 
 
 def main():
@@ -117,6 +151,9 @@ def main():
         print(f"{r:20s}" + "".join(f"{cols[t][r]:12.1f}" if cols[t][r] >= 10 else f"{cols[t][r]:12.2f}"
                                    for t in threads))
     for t in threads:
+        record("force", f"training frames/s vs a bare torch loop, threads={t}",
+               f"{cols[t]['train frames/s']:.0f} vs {cols[t]['bare frames/s']:.0f} frames/s",
+               cols[t]["fit / bare"], ">= 0.8")
         fps, ms = cols[t]["predict frames/s"], cols[t]["stream ms/frame"]
         record("force", f"batch predict vs 40 Hz, threads={t}", f"{fps:.0f} frames/s", fps / SENSOR_HZ, ">= 1")
         record("force", f"streaming vs 40 Hz, threads={t}", f"{ms:.2f} ms/frame", cols[t]["x 40 Hz"], ">= 1")

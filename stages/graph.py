@@ -45,8 +45,8 @@ GRAPH.node("collection_trajectory", "stages.sim.trajectory:collection_trajectory
            description="the real-collection protocol: 5 points, depth steps, 8 shear directions")
 GRAPH.node("calibration_trajectory", "stages.sim.trajectory:calibration_trajectory",
            params={k: f"calibration_trajectory.{k}" for k in (
-               "max_depth_mm", "n_steps", "repetitions", "indenter", "rate_hz")},
-           description="3 indentations to d_max and back, for material compensation")
+               "max_depth_mm", "n_steps", "repetitions", "indenter", "rate_hz", "shear_mm", "shear_steps")},
+           description="3 indentations to d_max and back (a shear leg at d_max), for material compensation")
 
 # -- marker representation ----------------------------------------------------------------
 GRAPH.node("patterns", "stages.markers.patterns:reference_set",
@@ -226,6 +226,19 @@ GRAPH.node("ablation", "stages.force.study:ablation_study",
            on_demand=True,
            description="what each addition of genforce_plus earns on the validation indenters, "
                        "beside the seed spread")
+
+# -- the learning curve: run only when named (`pipeline run curves`) ---------------------------
+GRAPH.node("curves", "stages.force.curves:curves_study",
+           inputs={"own": "own[*]", "transfer": "transfer[*]", "translated": "translate[*]",
+                   "markers": "{seqs[node]}[*]"},
+           params={"homo": _cat("groups", study="homo"), "material": _cat("groups", study="material"),
+                   "hetero": _cat("groups", study="hetero"), "factors": "curves.factors",
+                   **{k: v for k, v in _FIT.items()}, "seeds": "force.seeds",
+                   "val_indenters": "splits.val_indenters", **_SEQS},
+           grid={"study": ["homo", "material", "hetero"]},
+           on_demand=True,
+           description="the learning curve: a study's oracle and genforce_comp (first seed) on validation "
+                       "at 1x and curves.factors times the profile's training length")
 
 # -- control: the transferred force model in a gripper's loop --------------------------------
 GRAPH.node("control", "stages.control.nodes:control_node",

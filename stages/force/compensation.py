@@ -19,7 +19,10 @@ as they are, where the source's curve is above eps; elsewhere a label keeps its 
 
 Which curve a frame uses: phase 0 (press) loading; phases 1 and 2 (shear out and back, at
 constant depth right after pressing) loading too, since the elastomer has not been unloaded;
-phase 3 (release) unloading.
+phase 3 (release) unloading.  A calibration's curves are fitted on its press and release
+frames; its shear leg (phases 1 and 2, where the calibration has one) gives the sensor's
+shear-to-normal ratio (:func:`shear_ratio`), which the paper's compensation does not read
+(genforce_plus's `shear_calibration` does, stages.force.plus).
 """
 from __future__ import annotations
 
@@ -86,9 +89,32 @@ def curves_from_calibration(calibration: Mapping) -> Curves:
         missing.append("loading or phase")
     if missing:
         raise ValueError(f"calibration: no {', '.join(missing)} (a calibrate or capture_calibration artifact?)")
-    loading = (np.asarray(calibration["loading"]) if "loading" in calibration
-               else loading_mask(np.asarray(calibration["phase"])))
-    return fit_curves(np.asarray(calibration["normalised_depth"]), np.asarray(calibration["force"]), loading)
+    depth, force = np.asarray(calibration["normalised_depth"]), np.asarray(calibration["force"])
+    if "phase" in calibration:          # press and release: a shear leg is not on the curve
+        phase = np.asarray(calibration["phase"])
+        loading_mask(phase)
+        keep = np.isin(phase, (0,) + UNLOADING_PHASES)
+        return fit_curves(depth[keep], force[keep], phase[keep] == 0)
+    return fit_curves(depth, force, np.asarray(calibration["loading"]))
+
+
+def shear_ratio(calibration: Mapping | None) -> float | None:
+    """A calibration's shear-to-normal ratio: |(Fx, Fy)| / |Fz| at the far end of its shear leg
+    (the phase-1 frames at the largest shift), the mean over them; None for a calibration
+    without a shear leg (the authors' coefficient files, a calibration captured without one)."""
+    if calibration is None or not all(k in calibration for k in ("phase", "shift", "force")):
+        return None
+    phase, shift = np.asarray(calibration["phase"]), np.asarray(calibration["shift"], float)
+    force = np.asarray(calibration["force"], float)
+    reach = np.hypot(shift[:, 0], shift[:, 1])
+    leg = phase == 1
+    if not leg.any() or reach[leg].max() <= 0:
+        return None
+    far = leg & np.isclose(reach, reach[leg].max())
+    normal = np.abs(force[far, 2])
+    if np.any(normal <= EPS):
+        raise ValueError("shear_ratio: the calibration's shear leg has no normal force")
+    return float(np.mean(np.hypot(force[far, 0], force[far, 1]) / normal))
 
 
 def loading_mask(phase) -> np.ndarray:

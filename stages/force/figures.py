@@ -119,3 +119,27 @@ def ablation_png(metrics: Mapping[str, float], studies: list[str], additions: li
         if k == 0:
             ax.legend(fontsize=7)
     return _png(fig)
+
+
+def curves_png(metrics: Mapping[str, float], studies: list[str], lengths: Mapping[int, int],
+               methods):
+    """Per study: validation MAE (total, N) against training length (steps, log scale) for each
+    method, the profile's length (1x) ringed: where the profile sits on its learning curve."""
+    fig = _figure(figsize=(3.2 * max(1, len(studies)), 3.2))
+    factors = sorted(lengths)
+    for k, study in enumerate(studies):
+        ax = fig.add_subplot(1, len(studies), k + 1)
+        x = [lengths[f] for f in factors]
+        for m in methods:
+            y = [metrics[f"curve/{study}/{m}/{f}x/mae_total"] for f in factors]
+            ax.plot(x, y, "o-", color=COLOURS[m], label=m, ms=4)
+            ax.plot(x[:1], y[:1], "o", ms=11, mfc="none", mec=COLOURS[m])
+        ax.set_xscale("log", base=2)
+        ax.set_xticks(x)
+        ax.set_xticklabels([f"{v}\n({f}x)" for v, f in zip(x, factors)], fontsize=7)
+        ax.set_xlabel("training steps", fontsize=8)
+        ax.set_ylabel("validation MAE total (N)", fontsize=8)
+        ax.set_title(study, fontsize=9)
+        if k == 0:
+            ax.legend(fontsize=7)
+    return _png(fig)

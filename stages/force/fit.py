@@ -139,7 +139,8 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
     `checkpoint` (the engine's): an interrupted node re-runs none of its finished fits and
     resumes the one it was in."""
     from stages.force import plus
-    from stages.force.compensation import curves_figure, curves_from_calibration, label_scale, loading_mask
+    from stages.force.compensation import (curves_figure, curves_from_calibration, label_scale, loading_mask,
+                                           shear_ratio)
     from stages.force.model import to_arrays
     from stages.force.train import ContactSequence, fit_two_stage, loss_figure, make_sequences
     name = f"transfer[{source}->{target}]"
@@ -160,7 +161,9 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
     if not runs:
         raise ValueError(f"{name}: no translated contacts to train on")
     comp = compensated_labels(translated, curves)
-    paired = (plus.paired_frames(translated, target_markers, comp, train_indenters, pairs)
+    ratios = {"source": shear_ratio(source_calibration), "target": shear_ratio(target_calibration)}
+    ratios = ratios if None not in ratios.values() else None
+    paired = (plus.paired_frames(translated, target_markers, comp, train_indenters, pairs, ratios)
               if additions else None)
     reference = np.asarray(translated["reference"])
     force = np.asarray(translated["force"], np.float32)
@@ -201,7 +204,7 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
                       "configs": {"genforce_comp": genforce_comp.config,
                                   "genforce_plus": genforce_plus.config},
                       "train": train, "source": source, "target": target,
-                      "compensation_identity": bool(identity), "curves": curves,
+                      "compensation_identity": bool(identity), "curves": curves, "shear_ratios": ratios,
                       **({"calibration": calibration_from} if calibration_from else {}),
                       "plus": {"additions": additions, **plus_info,
                                **({"pairs": paired.count} if paired is not None else {})},

@@ -38,7 +38,8 @@ over how many pixels), which is not clipped (:func:`fit_linear_fz`).
 Outputs are min-max normalised per axis over [force_min, force_max] (labels outside are
 clipped), so the sigmoid's range is the force range.  force_min = force_max = "auto" (the
 paper's min-max normalisation of the training labels) has train.fit set the range from the
-labels it trains on, widened by AUTO_MARGIN of the span on each side; the fitted range is
+labels it trains on, widened by ``range_margin`` of the span on each side (so that a model
+can read a contact somewhat harder than any it trained on); the fitted range is
 part of the stored config.  Sensors differ a lot in range (TacTip shear within +-1 N, uSkin
 normal force to -56 N), so a fixed range either clips one or leaves another a sliver of the
 sigmoid.  The model carries a ``reference`` buffer:
@@ -66,6 +67,7 @@ DEFAULT_CONFIG = {
     "force_min": [-5.0, -5.0, -20.0],     # N, min-max normalisation (paper's ranges)
     "force_max": [5.0, 5.0, 5.0],
     "mirror_read": "none",                # "auto": shear read over the reference's mirror group
+    "range_margin": 0.05,                 # "auto" range: label min/max widened by this share of the span
 }
 INPUT_MODES = ("difference", "stack")
 MIRROR_READS = ("auto", "none")
@@ -75,7 +77,6 @@ MIRROR_MATCH = 0.9          # a mirror is a symmetry of the reference at this co
 STATISTICS = ("brighten", "darken", "brighter_share", "darker_share")   # image_statistics
 STATISTICS_THRESHOLD = 0.05
 AUTO = "auto"
-AUTO_MARGIN = 0.05          # auto range: label min/max widened by this share of the span
 
 
 def model_config(config: Mapping | None = None) -> dict:
@@ -93,6 +94,10 @@ def model_config(config: Mapping | None = None) -> dict:
         raise ValueError(f"input_size {out['input_size']} must be a multiple of {down} "
                          f"(the encoder's {len(out['encoder_channels'])} stride-2 stages after the stem)")
     out["input_size"], out["hidden"] = int(out["input_size"]), int(out["hidden"])
+    margin = out["range_margin"]
+    if isinstance(margin, bool) or not isinstance(margin, (int, float)) or not 0.0 <= float(margin) <= 10.0:
+        raise ValueError(f"force model range_margin {margin!r} must be a number in [0, 10]")
+    out["range_margin"] = float(margin)
     auto = [isinstance(out[k], str) and out[k] == AUTO for k in ("force_min", "force_max")]
     if all(auto):
         return out
@@ -109,7 +114,7 @@ def model_config(config: Mapping | None = None) -> dict:
 
 def resolve_range(config: Mapping, force) -> dict:
     """The config with an "auto" force range set from labels `force` (N,3): per axis
-    min - AUTO_MARGIN * span .. max + AUTO_MARGIN * span (an axis spanning under 1 mN gets
+    min - range_margin * span .. max + range_margin * span (an axis spanning under 1 mN gets
     +-0.5 N around its value).  A numeric range is returned unchanged."""
     config = model_config(config)
     if config["force_min"] != AUTO:
@@ -120,7 +125,7 @@ def resolve_range(config: Mapping, force) -> dict:
     lo, hi = f.min(0), f.max(0)
     span = hi - lo
     narrow = span < 1e-3
-    pad = np.where(narrow, 0.5, AUTO_MARGIN * span)
+    pad = np.where(narrow, 0.5, float(config["range_margin"]) * span)
     return model_config({**config, "force_min": (lo - pad).round(6).tolist(),
                          "force_max": (hi + pad).round(6).tolist()})
 

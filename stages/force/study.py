@@ -264,7 +264,7 @@ def _ablation(studies, transfer, translated, markers, val_indenters, train_inden
                 sets[t] = scoring_set(markers[t], val_indenters, "validation")
             val = sets[t]
             paired = plus.paired_frames(translated[key], markers[t], compensated_labels(translated[key], info["curves"]),
-                                        train_indenters, pairs)
+                                        train_indenters, pairs, info.get("shear_ratios"))
             models = [load_model(a, "genforce_comp") for _, a in trained]
             if scores["all"] and len(models) != len(scores["all"][0]):
                 raise ValueError(f"ablation[{study}]: {s} -> {t} has {len(models)} seed models, the "

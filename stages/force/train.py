@@ -150,7 +150,7 @@ class Checkpoint:
 
 def fit(sequences: list[ContactSequence], config: Mapping | None = None, *, steps: int,
         batch_size: int, lr: float, seed: int = 0, seq_len: int = 32, init: Mapping | None = None,
-        momentum: float = 0.9, weight_decay: float = 5e-4,
+        momentum: float = 0.9, weight_decay: float = 5e-4, optimizer: str = "sgd",
         threads: int | None = None, desc: str = "force fit", checkpoint: Checkpoint | None = None,
         label: str = "fit") -> tuple[ForceRegressor, dict]:
     """Train a regressor; returns (model in eval mode, on the CPU, history).  It trains on
@@ -182,7 +182,12 @@ def fit(sequences: list[ContactSequence], config: Mapping | None = None, *, step
     targets = [model.normalise(s.force) for s in sequences]
     dev = torch_device()
     model.to(dev)
-    opt = torch.optim.SGD(model.parameters(), lr=lr, momentum=momentum, weight_decay=weight_decay)
+    if optimizer == "sgd":
+        opt = torch.optim.SGD(model.parameters(), lr=lr, momentum=momentum, weight_decay=weight_decay)
+    elif optimizer == "adamw":
+        opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=weight_decay)
+    else:
+        raise ValueError(f"fit: optimizer {optimizer!r} is not sgd or adamw")
     losses, frames, start, before = [], 0, 0, 0.0
     saved = checkpoint.saved(label, steps, batch_size) if checkpoint is not None else None
     if saved is not None:

@@ -185,7 +185,8 @@ def calibrate(*, indenters: Mapping, trajectory: Mapping, sensor: str, spec: Map
     (GelSight 1.4 mm, the paper's d_max; TacTip 4.5 mm; uSkin 1 mm, the paper's
     heterogeneous calibration), so every sensor's curve spans normalised depth 0..1.
     Returns depth (N,) mm, normalised_depth (N,), force (N,3) float32, loading (N,) bool,
-    repetition (N,) int32, phase (N,) int8, and figures/force_depth.
+    repetition (N,) int32, phase (N,) int8, shift (N,2) mm (the shear leg's), and
+    figures/force_depth.
     """
     t = _arrays(trajectory, _FRAME_KEYS + ("loading", "normalised_depth"))
     material = material_of(spec, materials)
@@ -207,6 +208,7 @@ def calibrate(*, indenters: Mapping, trajectory: Mapping, sensor: str, spec: Map
     indenter = str(names[t["indenter_id"][0]])
     return {"depth": t["depth"], "normalised_depth": normalised, "force": force, "loading": loading,
             "repetition": repetition, "phase": t["phase"].astype(np.int8),
+            "shift": np.asarray(t["shift"], np.float32),
             "figures": {"force_depth": _force_depth_png(normalised, force, t["phase"], repetition,
                                                         f"{sensor}: calibration ({indenter})")},
             # what a lab measures in this indentation, and nothing the twin alone knows (its

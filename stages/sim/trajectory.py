@@ -200,26 +200,38 @@ def collection_trajectory(*, n_points: int = 5, point_offset_mm: float = 3.0,
 
 def calibration_trajectory(*, max_depth_mm: float = 1.4, n_steps: int = 28,
                            repetitions: int = 3, indenter: str = "calib_prism",
-                           position_mm=(0.0, 0.0), rate_hz: float = 40.0) -> dict:
+                           position_mm=(0.0, 0.0), rate_hz: float = 40.0,
+                           shear_mm: float = 0.0, shear_steps: int = 8) -> dict:
     """Material-compensation calibration: ``repetitions`` indentations to d_max and back.
 
     Per repetition (one contact each): loading at depths k*d_max/n_steps for k = 1..n_steps
-    (phase 0; the peak d_max is sampled once), then unloading at k = n_steps-1..0 (phase 3,
-    ending at the surface). Quasi-static steps, one sample per step at ``rate_hz``.
-    Extras: ``loading`` (N,) bool (phase 0), ``normalised_depth`` (N,) depth / d_max,
+    (phase 0; the peak d_max is sampled once), then, with ``shear_mm`` > 0, the shear leg at
+    d_max: out along +x to shear_mm in ``shear_steps`` steps (phase 1) and back (phase 2), then
+    the same along +y; then unloading at k = n_steps-1..0 (phase 3, ending at the surface).
+    Quasi-static steps, one sample per step at ``rate_hz``.  The press and release frames
+    give the force-depth curves (stages.force.compensation.fit_curves), the shear leg the
+    sensor's shear-to-normal ratio (compensation.shear_ratio).
+    Extras: ``loading`` (N,) bool (phases 0-2), ``normalised_depth`` (N,) depth / d_max,
     ``time`` (N,) s.  ``paired`` is all False (these frames are calibration, not M2M pairs).
     """
     if n_steps < 1 or repetitions < 1 or max_depth_mm <= 0:
         raise ValueError("n_steps, repetitions and max_depth_mm must be positive")
+    if shear_mm < 0 or shear_steps < 1:
+        raise ValueError("shear_mm must be >= 0 and shear_steps positive")
     (iid,) = _indenter_ids([indenter])
     press, release = np.arange(1, n_steps + 1), np.arange(n_steps - 1, -1, -1)
-    k = [np.concatenate([press, release])] * repetitions          # steps of d_max / n_steps
-    phase = [np.r_[np.zeros(n_steps), np.full(n_steps, 3)]] * repetitions
-    contact = np.concatenate([np.full(len(x), c) for c, x in enumerate(k)]).astype(np.int32)
-    depth = max_depth_mm * np.concatenate(k) / n_steps
-    phase = np.concatenate(phase).astype(np.int8)
+    out_back = np.r_[np.arange(1, shear_steps + 1), np.arange(shear_steps - 1, -1, -1)] / shear_steps
+    leg = shear_mm * out_back if shear_mm > 0 else np.zeros(0)
+    leg_phase = np.r_[np.ones(shear_steps), np.full(shear_steps, 2)] if shear_mm > 0 else np.zeros(0)
+    shear_x = np.r_[np.zeros(n_steps), leg, np.zeros(leg.size), np.zeros(n_steps)]
+    shear_y = np.r_[np.zeros(n_steps), np.zeros(leg.size), leg, np.zeros(n_steps)]
+    k_one = np.r_[press, np.full(2 * leg.size, n_steps), release]       # steps of d_max / n_steps
+    phase_one = np.r_[np.zeros(n_steps), leg_phase, leg_phase, np.full(n_steps, 3)]
+    contact = np.repeat(np.arange(repetitions), k_one.size).astype(np.int32)
+    depth = max_depth_mm * np.tile(k_one, repetitions) / n_steps
+    phase = np.tile(phase_one, repetitions).astype(np.int8)
     n = depth.size
-    shift = np.zeros((n, 2))
+    shift = np.c_[np.tile(shear_x, repetitions), np.tile(shear_y, repetitions)]
     pos = np.empty((n, 3))             # the indenter's position: the touchdown point
     pos[:, 0], pos[:, 1], pos[:, 2] = position_mm[0], position_mm[1], -depth
     return {

@@ -258,6 +258,44 @@ def test_curves_with_a_constant_term_divide_as_they_are():
 
 # ---------------------------------------------------------------------------- metrics
 
+def test_a_shear_leg_is_off_the_curves_and_gives_the_shear_ratio():
+    """curves_from_calibration fits the press and release frames only; shear_ratio reads
+    |(Fx, Fy)| / |Fz| where the leg reaches farthest."""
+    from stages.force.compensation import shear_ratio
+    d, f, load = _calibration(1.0)
+    phase = np.where(load, 0, 3).astype(np.int8)
+    plain = {"normalised_depth": d, "force": f, "phase": phase, "shift": np.zeros((d.size, 2))}
+    k = int(np.argmax(d))                                  # the leg: 4 frames at the peak depth
+    leg_f = np.array([[0.3, 0.4, -2.0], [0.6, 0.8, -2.0], [0.3, 0.4, -2.0], [0.0, 0.0, -2.0]])
+    leg = {"normalised_depth": np.r_[d[:k + 1], np.full(4, d[k]), d[k + 1:]],
+           "force": np.r_[f[:k + 1], leg_f, f[k + 1:]],
+           "phase": np.r_[phase[:k + 1], [1, 1, 2, 2], phase[k + 1:]].astype(np.int8),
+           "shift": np.r_[np.zeros((k + 1, 2)), [[0.5, 0], [1.0, 0], [0.5, 0], [0, 0]], np.zeros((d.size - k - 1, 2))]}
+    assert curves_from_calibration(leg) == curves_from_calibration(plain)
+    assert shear_ratio(leg) == pytest.approx(1.0 / 2.0)
+    assert shear_ratio(plain) is None and shear_ratio({"loading_coefficients": [1, 0]}) is None
+
+
+def test_shear_calibration_scales_the_shear_read_alone(trained):
+    """genforce_plus's shear_calibration multiplies the model's shear by target / source
+    shear-to-normal ratio and leaves Fz; without both ratios the model reads as it did."""
+    model, _, images, _, _ = trained
+    seq = images[0]
+    before = predict_sequence(model, seq)
+    scaled = plus.apply(model, plus.Paired({}, {}, np.zeros((2, 2), int), np.zeros((2, 3)), [], np.zeros((0, 3)),
+                                           {"source": 0.5, "target": 0.2}), ["shear_calibration"])
+    got, info = scaled
+    assert info["shear_calibration"]["scale"] == pytest.approx(0.4) and info["shear_calibration"]["calibrated"]
+    after = predict_sequence(got, seq)
+    np.testing.assert_allclose(after[:, :2], 0.4 * before[:, :2], rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(after[:, 2], before[:, 2], rtol=1e-6)
+    np.testing.assert_array_equal(predict_sequence(from_arrays(to_arrays(got), got.config), seq), after)
+    same, info = plus.apply(model, plus.Paired({}, {}, np.zeros((2, 2), int), np.zeros((2, 3)), [], np.zeros((0, 3)),
+                                              None), ["shear_calibration"])
+    assert info["shear_calibration"] == {"scale": 1.0, "calibrated": False}
+    np.testing.assert_array_equal(predict_sequence(same, seq), before)
+
+
 def test_metrics_match_sklearn_and_hand_values():
     true = np.array([[0.0, 1.0, -1.0], [1.0, 1.0, -2.0], [2.0, 1.0, -3.0], [3.0, 1.0, -6.0]])
     pred = np.array([[0.5, 1.0, -1.0], [1.0, 1.5, -2.0], [2.0, 1.0, -4.0], [2.5, 1.0, -6.0]])

@@ -175,3 +175,21 @@ def test_unusable_values_are_the_users_one_line_errors(make, kwargs, message):
     with pytest.raises(InputError) as err:
         make(**kwargs)
     assert message in str(err.value) and err.value.user_error is True
+
+
+def test_calibration_shear_leg():
+    """With shear_mm the calibration shears at d_max, out along x and back, then along y, before
+    it releases: what the sensor's shear-to-normal ratio is read from."""
+    tr = calibration_trajectory(n_steps=5, repetitions=2, shear_mm=1.0, shear_steps=4)
+    _frame_fields_consistent(tr)
+    one = tr["contact_id"] == 0
+    phase, shift, depth = tr["phase"][one], tr["shift"][one], tr["depth"][one]
+    assert phase.tolist() == [0] * 5 + ([1] * 4 + [2] * 4) * 2 + [3] * 5
+    np.testing.assert_allclose(shift[5:13, 0], [0.25, 0.5, 0.75, 1.0, 0.75, 0.5, 0.25, 0.0])
+    np.testing.assert_allclose(shift[13:21, 1], [0.25, 0.5, 0.75, 1.0, 0.75, 0.5, 0.25, 0.0])
+    assert np.all(shift[13:21, 0] == 0) and np.all(shift[5:13, 1] == 0)
+    assert np.all(depth[4:21] == pytest.approx(1.4)) and depth[-1] == 0.0
+    assert tr["loading"][one].tolist() == (phase != 3).tolist()
+    np.testing.assert_array_equal(tr["phase"][~one], phase)
+    plain = calibration_trajectory(n_steps=5, repetitions=2)
+    assert plain["depth"].size == 20 and not plain["shift"].any()
