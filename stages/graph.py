@@ -63,6 +63,8 @@ GRAPH.node("deform", "stages.sim.deform:deform_sequence",
                    "collection_trajectory": "collection_trajectory"},
            params={"spec": "sensors.{sensor}", "materials": "materials",
                    "contacts_per_indenter": "deform.collection_contacts_per_indenter",
+                   "val_contacts_per_indenter": "deform.validation_contacts_per_indenter",
+                   "val_indenters": "splits.val_indenters",
                    "frame_stride": "deform.collection_frame_stride"},
            grid={"sensor": _cat("bodies")},
            description="FEM-lite pad deformation and force labels along a sensor body's trajectory")

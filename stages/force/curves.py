@@ -65,7 +65,7 @@ def train_oracle(markers: Mapping, config: Mapping, *, steps: int, batch_size: i
     """own[skin]'s regressor as fit_own trains it (the same sequences, recipe and seed), for
     `steps` steps."""
     from stages.force.data import contact_runs, read_runs
-    from stages.force.fit import split_config
+    from stages.force.fit import recipe, split_config
     from stages.force.train import fit, make_sequences
     model_cfg, train = split_config(config)
     runs = contact_runs(markers, train_indenters)
@@ -73,7 +73,7 @@ def train_oracle(markers: Mapping, config: Mapping, *, steps: int, batch_size: i
     seqs = make_sequences(read_runs(markers, "images", runs), [force[a:b] for a, b in runs],
                           np.asarray(markers["reference"]), model_cfg)
     model, _ = fit(seqs, model_cfg, steps=int(steps), batch_size=int(batch_size), lr=float(lr), seed=int(seed),
-                   seq_len=int(train["seq_len"]), desc=label, checkpoint=checkpoint, label=label)
+                   **recipe(train), desc=label, checkpoint=checkpoint, label=label)
     return model
 
 
@@ -84,7 +84,7 @@ def train_comp(translated: Mapping, curves: Mapping | None, config: Mapping, *, 
     compensated labels of `curves`, the two-stage recipe, the seed), for `steps` (and
     `finetune_steps`) steps."""
     from stages.force.data import contact_runs, read_runs
-    from stages.force.fit import compensated_labels, split_config
+    from stages.force.fit import compensated_labels, recipe, split_config
     from stages.force.train import fit_two_stage, make_sequences
     model_cfg, train = split_config(config)
     runs = contact_runs(translated, train_indenters)
@@ -93,8 +93,7 @@ def train_comp(translated: Mapping, curves: Mapping | None, config: Mapping, *, 
                           np.asarray(translated["reference"]), model_cfg)
     model, _ = fit_two_stage(seqs, model_cfg, steps=int(steps), finetune_steps=int(finetune_steps),
                              batch_size=int(batch_size), lr=float(lr), seed=int(seed),
-                             seq_len=int(train["seq_len"]),
-                             finetune_lr_factor=float(train["finetune_lr_factor"]), desc=label,
+                             **recipe(train), finetune_lr_factor=float(train["finetune_lr_factor"]), desc=label,
                              checkpoint=checkpoint, label=label)
     return model
 

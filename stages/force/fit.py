@@ -24,7 +24,16 @@ from stages.force.data import contact_runs, read_runs, run_rows
 TRAIN_DEFAULTS = {
     "seq_len": 32,                # longest training window (frames)
     "finetune_lr_factor": 0.1,    # fine-tune stage learning rate = lr * factor
+    "optimizer": "sgd",           # sgd (momentum 0.9, the paper's) or adamw
+    "weight_decay": 5e-4,         # the optimiser's (the paper's SGD: 5e-4)
 }
+
+
+def recipe(train: Mapping) -> dict:
+    """The keyword arguments of stages.force.train.fit that a config's training keys set: every
+    method trains with them alike."""
+    return {"seq_len": int(train["seq_len"]), "optimizer": str(train["optimizer"]),
+            "weight_decay": float(train["weight_decay"])}
 
 
 def split_config(config: Mapping | None) -> tuple[dict, dict]:
@@ -68,7 +77,7 @@ def fit_own(*, markers: Mapping, skin: str, train_indenters: Sequence[str], conf
                           reference, model_cfg)
     ckpt = _checkpoint(checkpoint)
     model, history = fit(seqs, model_cfg, steps=int(steps), batch_size=int(batch_size), lr=float(lr),
-                         seed=int(seed), seq_len=int(train["seq_len"]), desc=f"own[{skin}]",
+                         seed=int(seed), **recipe(train), desc=f"own[{skin}]",
                          checkpoint=ckpt, label="own")
     model.set_reference(reference)
     kept, timing = _split_timing(history, ckpt)
@@ -171,7 +180,7 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
     seqs = make_sequences(read_runs(translated, "images", runs), [force[a:b] for a, b in runs],
                           reference, model_cfg)
     kwargs = dict(steps=int(steps), finetune_steps=int(finetune_steps), batch_size=int(batch_size),
-                  lr=float(lr), seed=int(seed), seq_len=int(train["seq_len"]),
+                  lr=float(lr), seed=int(seed), **recipe(train),
                   finetune_lr_factor=float(train["finetune_lr_factor"]))
     ckpt = _checkpoint(checkpoint)
     genforce, hist = fit_two_stage(seqs, model_cfg, desc=f"{name} genforce", checkpoint=ckpt,

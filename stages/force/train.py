@@ -4,13 +4,11 @@ A sample is one contact sequence.  Each step draws ``batch_size`` contacts, crop
 window of each (half of the windows start at the contact's first frame, where the GRU state
 starts from rest in deployment; the rest start anywhere) with a random length up to
 ``seq_len``, pads the shorter windows with their last frame (image and label: a hold) and
-minimises the L1 loss on min-max normalised forces with SGD (momentum 0.9, weight decay
-5e-4), a linear warm-up and a cosine decay of the learning rate; the gradient norm is clipped
-at 1, which keeps lr 0.1 (the paper's) stable with batches of a few contacts.
-
-Speed (benchmarks/force.py, default config, 64x64 input, one torch thread of a 2-core CPU):
-about 40 samples/s (contact windows, ~1250 frames/s); a 200-step default fit (batch 4,
-windows up to 24 frames) takes 10-20 s.
+minimises the L1 loss on min-max normalised forces with the ``optimizer``: SGD (momentum 0.9,
+the paper's) or AdamW, with ``weight_decay``, a linear warm-up and a cosine decay of the
+learning rate; the gradient norm is clipped at 1, which keeps lr 0.1 (the paper's SGD) stable
+with batches of a few contacts.  benchmarks/force.py measures the speed beside a bare torch
+loop of the same network.
 
 Two-stage schedules (pretrain, then fine-tune) are two :func:`fit` calls, the second with
 ``init=`` the first's weights and a smaller ``lr``.
@@ -239,20 +237,23 @@ def fit(sequences: list[ContactSequence], config: Mapping | None = None, *, step
 
 def fit_two_stage(sequences: list[ContactSequence], config: Mapping | None = None, *, steps: int,
                   finetune_steps: int, batch_size: int, lr: float, seed: int = 0,
-                  seq_len: int = 32, finetune_lr_factor: float = 0.1,
+                  seq_len: int = 32, finetune_lr_factor: float = 0.1, optimizer: str = "sgd",
+                  weight_decay: float = 5e-4,
                   init: Mapping | None = None, desc: str = "force fit", checkpoint: Checkpoint | None = None,
                   label: str = "fit") -> tuple[ForceRegressor, dict]:
     """Pretrain (`steps` at `lr`), then fine-tune the result (`finetune_steps` at
     `lr * finetune_lr_factor`) on the same sequences: the paper's two stages (0.1, then 1e-3).
     With a `checkpoint`, the stages are the fits `<label>/pretrain` and `<label>/finetune`."""
     model, hist = fit(sequences, config, steps=steps, batch_size=batch_size, lr=lr, seed=seed,
-                      seq_len=seq_len, init=init, desc=f"{desc} (pretrain)",
+                      seq_len=seq_len, init=init, desc=f"{desc} (pretrain)", optimizer=optimizer,
+                      weight_decay=weight_decay,
                       checkpoint=checkpoint, label=f"{label}/pretrain")
     history = {"pretrain": hist}
     if finetune_steps > 0:
         model, hist2 = fit(sequences, model.config, steps=finetune_steps, batch_size=batch_size,
                            lr=lr * finetune_lr_factor, seed=seed + 1, seq_len=seq_len,
-                           init=to_arrays(model), desc=f"{desc} (fine-tune)",
+                           init=to_arrays(model), desc=f"{desc} (fine-tune)", optimizer=optimizer,
+                           weight_decay=weight_decay,
                            checkpoint=checkpoint, label=f"{label}/finetune")
         history["finetune"] = hist2
     return model, history

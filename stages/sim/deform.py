@@ -19,7 +19,7 @@ plus grid_x (w,), grid_y (h,) mm, surface_z (h,w) mm (the undeformed surface, 0 
 """
 from __future__ import annotations
 
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -36,12 +36,15 @@ def _arrays(trajectory: Mapping, keys) -> dict:
     return {k: np.asarray(trajectory[k]) for k in keys if k in trajectory}
 
 
-def select_frames(trajectory: Mapping, contacts_per_indenter: int = 0, frame_stride: int = 1) -> np.ndarray:
+def select_frames(trajectory: Mapping, contacts_per_indenter: int = 0, frame_stride: int = 1,
+                  contacts_of: Mapping[str, int] | None = None) -> np.ndarray:
     """Indices of the trajectory frames a twin simulates.
 
     contacts_per_indenter > 0 keeps that many contacts per indenter, evenly spread over the
     indenter's contacts (the collection protocol orders them by surface point, then depth
-    level, so the pick covers points and levels alike); 0 keeps all.  frame_stride > 1 keeps
+    level, so the pick covers points and levels alike); 0 keeps all.  contacts_of (indenter
+    name -> count) gives some indenters another count (the validation indenters more, so
+    that the choices made on them rest on more contacts).  frame_stride > 1 keeps
     every stride-th sample of each movement counted back from its end, so every movement's
     target is kept.  The pick depends on the trajectory only, so every sensor simulated on the
     same trajectory gets the same frames (location-paired).
@@ -49,11 +52,14 @@ def select_frames(trajectory: Mapping, contacts_per_indenter: int = 0, frame_str
     t = _arrays(trajectory, ("contact_id", "indenter_id", "movement_id"))
     contact, indenter = t["contact_id"], t["indenter_id"]
     keep = np.ones(contact.size, bool)
-    if contacts_per_indenter > 0:
+    contacts_of = dict(contacts_of or {})
+    if contacts_per_indenter > 0 or contacts_of:
+        names = np.asarray(trajectory["indenters"]).astype(str)
         chosen = []
         for iid in dict.fromkeys(indenter.tolist()):                 # order of appearance
             ids = np.unique(contact[indenter == iid])
-            k = min(int(contacts_per_indenter), ids.size)
+            want = int(contacts_of.get(str(names[iid]), contacts_per_indenter))
+            k = min(want, ids.size) if want > 0 else ids.size
             chosen.append(ids[((np.arange(k) + 0.5) * ids.size / k).astype(int)])
         keep &= np.isin(contact, np.concatenate(chosen))
     frames = np.flatnonzero(keep)
@@ -107,12 +113,14 @@ def _force_trace_png(force: np.ndarray, title: str) -> np.ndarray:
 
 def deform_sequence(*, indenters: Mapping, sim_trajectory: Mapping, collection_trajectory: Mapping,
                     sensor: str, spec: Mapping, materials: Mapping,
-                    contacts_per_indenter: int = 0, frame_stride: int = 1):
+                    contacts_per_indenter: int = 0, frame_stride: int = 1,
+                    val_indenters: Sequence[str] = (), val_contacts_per_indenter: int = 0):
     """Node `deform[sensor=...]`: yields one chunk per contact, returns the per-sensor data.
 
     spec: the sensor's catalogue entry; its `trajectory` names the input to follow
     (`sim_trajectory` or `collection_trajectory`, the latter subsampled by
-    contacts_per_indenter and frame_stride, see select_frames) and its `depth_scale`
+    contacts_per_indenter, val_contacts_per_indenter for the val_indenters (0: as the others)
+    and frame_stride, see select_frames) and its `depth_scale`
     multiplies that trajectory's depths (TacTip's protocol is the GelSight one x 4.5).
     """
     from tqdm import tqdm
@@ -130,7 +138,8 @@ def deform_sequence(*, indenters: Mapping, sim_trajectory: Mapping, collection_t
         raise ValueError(f"sensor {sensor!r}: the trajectory presses to "
                          f"{t['depth'].max() * scale:.3g} mm, deeper than max_depth_mm {max_depth}")
     if spec["trajectory"] == "collection_trajectory":
-        frames = select_frames(trajectory, contacts_per_indenter, frame_stride)
+        more = {str(n): int(val_contacts_per_indenter) for n in val_indenters} if val_contacts_per_indenter else {}
+        frames = select_frames(trajectory, contacts_per_indenter, frame_stride, more)
     else:
         frames = np.arange(t["depth"].size)
     names = np.asarray(trajectory["indenters"]).astype(str)

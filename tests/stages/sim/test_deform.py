@@ -150,6 +150,11 @@ def test_select_frames():
     shear = tr["phase"][frames] == 1
     assert np.all(np.unique(move[shear], return_counts=True)[1] == 3)
     assert select_frames(tr, 0, 1).size == tr["depth"].size
+    # the validation indenters may get more contacts: the others keep theirs, frame for frame
+    more = select_frames(tr, contacts_per_indenter=3, frame_stride=9, contacts_of={"cone": 6})
+    cone = tr["indenter_id"] == ALL_INDENTERS.index("cone")
+    assert len(np.unique(tr["contact_id"][more][cone[more]])) == 6
+    np.testing.assert_array_equal(more[~cone[more]], frames[~cone[frames]])
 
 
 def test_calibrate_hysteresis(params, indenter_artifact):
