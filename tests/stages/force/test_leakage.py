@@ -23,11 +23,15 @@ TRAIN = ["sphere", "prism"]
 FIT = dict(steps=6, batch_size=2, lr=0.05, seed=0)
 
 
-def _calibration(scale):
-    d = np.r_[np.linspace(0, 1, 12), np.linspace(1, 0, 12)]
-    loading = np.r_[np.ones(12, bool), np.zeros(12, bool)]
-    fz = -scale * (d * d + 2 * d) * np.where(loading, 1.0, 0.8)
-    return {"normalised_depth": d, "force": np.c_[0.1 * fz, -0.05 * fz, fz], "loading": loading}
+def _calibration(scale, shear):
+    """Press, a shear leg at the peak (out 1 mm, back: `shear` of the normal force), release."""
+    d = np.r_[np.linspace(0, 1, 12), 1.0, 1.0, np.linspace(1, 0, 12)]
+    phase = np.r_[np.zeros(12), 1, 2, np.full(12, 3)].astype(np.int8)
+    fz = -scale * (d * d + 2 * d) * np.where(phase == 3, 0.8, 1.0)
+    fx, fy = np.where(phase == 1, -shear * fz, 0.1 * fz), np.where(phase == 1, 0.0, -0.05 * fz)
+    shift = np.zeros((d.size, 2))
+    shift[12, 0] = 1.0
+    return {"normalised_depth": d, "force": np.c_[fx, fy, fz], "phase": phase, "shift": shift}
 
 
 def _poisoned(target, how):
@@ -53,8 +57,8 @@ def _chain(source, target, tiny_config):
     translated = {**out, **{k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]},
                   "indenters": source["indenters"]}
     config = {**tiny_config, "seq_len": 10}
-    transfer = fit_transfer(translated=translated, source_calibration=_calibration(1.0),
-                            target_calibration=_calibration(1.6), source="S", target="T", config=config,
+    transfer = fit_transfer(translated=translated, source_calibration=_calibration(1.0, 0.5),
+                            target_calibration=_calibration(1.6, 0.2), source="S", target="T", config=config,
                             finetune_steps=2, train_indenters=TRAIN, target_markers=target, pairs=0,
                             additions=list(plus.ADDITIONS), **FIT)
     own = {s: fit_own(markers=markers[s], skin=s, train_indenters=TRAIN, config=config, **FIT)
@@ -98,6 +102,7 @@ def test_no_method_but_the_oracle_reads_the_targets_labels(worlds, how):
         np.testing.assert_array_equal(pred, poisoned[1][m], err_msg=f"{how}: predictions of {m}")
     assert clean[3] == poisoned[3]                  # the transfer's attrs: histories, gains, curves
     assert clean[3]["plus"]["additions"] == list(plus.ADDITIONS)
+    assert clean[3]["plus"]["shear_calibration"]["scale"] == pytest.approx(0.4)     # 0.2 / 0.5
     # the oracle trains on the target's labels: the same change alters it
     oracle, changed = clean[2], poisoned[2]
     assert any(not np.array_equal(v, changed[k], equal_nan=False) for k, v in oracle.items()), how
