@@ -11,9 +11,9 @@ dots laid out symmetric about both centre lines, as the twins' markers are, so t
 genforce_plus's mirror read reads each frame with its three mirror images, as it does a
 GelSight, TacTip or uSkin frame; the speed does not depend on the content otherwise), the
 default-profile size.  Columns are torch thread counts.  Rows:
-  train samples/s     contact windows per second (batch 4, windows up to 24 frames, padded)
+  train samples/s     contact windows per second (the default profile's batch and windows, padded)
   train frames/s      frames through forward + backward per second
-  200-step fit (s)    one default-profile training (200 steps) at that speed
+  N-step fit (s)      one default-profile training (its force.steps) at that speed
   predict frames/s    predict_contacts over the 1500 frames (contacts batched, state reset)
   stream ms/frame     StreamingPredictor.step latency (median over 200 frames): the plain
                       regressor, as source_only, genforce and genforce_comp read
@@ -48,7 +48,24 @@ from stages.common import torch_device, torch_threads                           
 from stages.force.train import fit, make_sequences                              # noqa: E402
 
 SENSOR_HZ = 40.0
-FIT_STEPS, BATCH, SEQ_LEN = 200, 4, 24          # the default profile's training
+
+
+def _profile_recipe() -> tuple[int, int, int, dict]:
+    """The default profile's training: steps, batch size, window length and the optimiser's
+    keyword arguments of stages.force.train.fit (params.yaml `force`)."""
+    from pathlib import Path
+
+    from pipeline.params import get, load
+    from stages.force.fit import recipe, split_config
+    params = load(Path(__file__).resolve().parents[1] / "params.yaml")
+    _, train = split_config(get(params, "force.config"))
+    fit_kw = recipe(train)
+    seq_len = fit_kw.pop("seq_len")
+    fit_kw["lr"] = float(get(params, "force.lr"))
+    return int(get(params, "force.steps")), int(get(params, "force.batch_size")), seq_len, fit_kw
+
+
+FIT_STEPS, BATCH, SEQ_LEN, FIT_KW = _profile_recipe()      # the default profile's training
 
 
 def marker_like(rng, n, size=128):
@@ -73,13 +90,17 @@ def step_ms(predictor, images) -> float:
 
 def bare_loop(threads, config, steps, seqs) -> float:
     """Frames/s of a bare training loop of the same network: full SEQ_LEN windows of BATCH
-    contacts, SGD with the profile's momentum and weight decay, L1 loss."""
+    contacts, the profile's optimiser (torch's SGD with momentum 0.9, or AdamW), L1 loss."""
     from stages.force.model import ForceRegressor
     cfg = {**config, "force_min": [-5.0, -5.0, -20.0], "force_max": [5.0, 5.0, 5.0]}
     with torch_threads(threads):
         torch.manual_seed(0)
         model = ForceRegressor(cfg).to(torch_device()).train()
-        opt = torch.optim.SGD(model.parameters(), lr=0.05, momentum=0.9, weight_decay=5e-4)
+        if FIT_KW["optimizer"] == "sgd":
+            opt = torch.optim.SGD(model.parameters(), lr=FIT_KW["lr"], momentum=0.9,
+                                  weight_decay=FIT_KW["weight_decay"])
+        else:
+            opt = torch.optim.AdamW(model.parameters(), lr=FIT_KW["lr"], weight_decay=FIT_KW["weight_decay"])
         x = torch.stack([s.inputs[:SEQ_LEN] for s in seqs[:BATCH]]).to(torch_device())
         y = torch.rand(BATCH, SEQ_LEN, 3, device=x.device)
 
@@ -103,7 +124,7 @@ def bench(threads, config, steps, contacts=30, length=50):
     images, ref = marker_like(rng, contacts * length)
     forces = rng.uniform(-4, 0, (contacts * length, 3)).astype(np.float32)
     seqs = make_sequences(np.split(images, contacts), np.split(forces, contacts), ref, config)
-    kw = dict(batch_size=BATCH, seq_len=SEQ_LEN, lr=0.05, threads=threads)
+    kw = dict(batch_size=BATCH, seq_len=SEQ_LEN, threads=threads, **FIT_KW)
     fit(seqs, config, steps=3, **kw)                                          # warm-up
     cpu, wall = time.process_time(), time.perf_counter()
     model, hist = fit(seqs, config, steps=steps, **kw)
