@@ -154,15 +154,16 @@ def test_the_ranges_option_lists_are_the_nodes_own():
 def test_allpairs_adds_pairs_and_changes_nothing_else():
     """The allpairs profile runs every ordered pair of the 12 simulation patterns and of the
     default profile's sensors; every node instance the default has keeps its params there (so a
-    default store serves it), except the studies and the ablation, whose pair lists grow."""
+    default store serves it), except the studies, the ablation and the learning curve, whose
+    pair lists grow."""
     from itertools import permutations
     project = find_project(ROOT)
     graph = project.load_graph()
     base = graph.expand(P.load(project.params_file, None, [], project.profiles_dir))
     every = graph.expand(P.load(project.params_file, "allpairs", [], project.profiles_dir))
-    studies = {"sim_m2m", "homo", "material", "hetero", "ablation"}
+    studies = {"sim_m2m", "homo", "material", "hetero", "ablation", "curves"}
     changed = sorted(n for n, inst in base.items()
-                     if n not in studies and (n not in every or every[n].params != inst.params))
+                     if n.partition("[")[0] not in studies and (n not in every or every[n].params != inst.params))
     assert changed == []
     pairs = lambda inst: {tuple(p) for g in inst.params["groups"].values() for p in g}
     twins = {"homo": ["gelsight-A-I", "gelsight-A-II", "gelsight-C-I", "gelsight-C-II", "gelsight-D-I"],
@@ -295,7 +296,7 @@ SAME_IN_EVERY_EXECUTOR = [
     "flow_warp[source=Array1,target=Array2]", "m2m_sim", "m2m",
     "translate_sim[source=Array1,target=Array2]", "translate[source=gelsight-A-I,target=gelsight-A-II]",
     "own[skin=gelsight-A-II,seed=0]"]
-LEFT_TO_A_WHOLE_RUN = {"transfer", "ablation", "sim_m2m", "homo", "material", "hetero",
+LEFT_TO_A_WHOLE_RUN = {"transfer", "ablation", "curves", "sim_m2m", "homo", "material", "hetero",
                        "control", "summary", "capture", "capture_calibration", "ingest", "authors_calibration"}
 
 

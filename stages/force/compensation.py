@@ -101,7 +101,8 @@ def curves_from_calibration(calibration: Mapping) -> Curves:
 def shear_ratio(calibration: Mapping | None) -> float | None:
     """A calibration's shear-to-normal ratio: |(Fx, Fy)| / |Fz| at the far end of its shear leg
     (the phase-1 frames at the largest shift), the mean over them; None for a calibration
-    without a shear leg (the authors' coefficient files, a calibration captured without one)."""
+    without a shear leg (the authors' coefficient files, a calibration captured without one)
+    or whose leg reads no shear (an F/T channel that did not measure it)."""
     if calibration is None or not all(k in calibration for k in ("phase", "shift", "force")):
         return None
     phase, shift = np.asarray(calibration["phase"]), np.asarray(calibration["shift"], float)
@@ -114,7 +115,8 @@ def shear_ratio(calibration: Mapping | None) -> float | None:
     normal = np.abs(force[far, 2])
     if np.any(normal <= EPS):
         raise ValueError("shear_ratio: the calibration's shear leg has no normal force")
-    return float(np.mean(np.hypot(force[far, 0], force[far, 1]) / normal))
+    ratio = float(np.mean(np.hypot(force[far, 0], force[far, 1]) / normal))
+    return ratio if ratio > EPS else None
 
 
 def loading_mask(phase) -> np.ndarray:

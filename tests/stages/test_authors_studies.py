@@ -132,6 +132,7 @@ TWIN_INPUTS = {
     "translate": {"source_markers": "markers[skin={source}]", "target_markers": "markers[skin={target}]"},
     "flow_warp": {"source_markers": "markers[skin={source}]", "target_markers": "markers[skin={target}]"},
     "m2m": {"markers": "markers[skin=@skins]"}, "ablation": {"markers": "markers[*]"},
+    "curves": {"markers": "markers[*]"},
     "transfer": {"source_calibration": "calibrate[sensor={source_spec[body]}]",
                  "target_calibration": "calibrate[sensor={target_spec[body]}]",
                  "target_markers": "markers[skin={target}]"},

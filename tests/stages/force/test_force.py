@@ -274,6 +274,8 @@ def test_a_shear_leg_is_off_the_curves_and_gives_the_shear_ratio():
     assert curves_from_calibration(leg) == curves_from_calibration(plain)
     assert shear_ratio(leg) == pytest.approx(1.0 / 2.0)
     assert shear_ratio(plain) is None and shear_ratio({"loading_coefficients": [1, 0]}) is None
+    unread = dict(leg, force=np.where(leg["phase"][:, None] == 1, leg["force"] * [0, 0, 1], leg["force"]))
+    assert shear_ratio(unread) is None                     # a leg whose F/T read no shear
 
 
 def test_shear_calibration_scales_the_shear_read_alone(trained):
