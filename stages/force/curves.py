@@ -6,7 +6,8 @@ target and genforce_comp of every pair are trained at 1x and at `curves.factors`
 the profile's training length (force.steps and force.finetune_steps times k; everything else as
 the profile trains them, the learning-rate schedule stretched to the length) from the first
 regressor seed, and scored on the targets' validation contacts.  The 1x models are the
-profile's own (own, transfer); the node trains the longer ones.
+profile's own (own, transfer); the node trains the longer ones (the oracle with own's
+stages.force.fit.train_own).
 
 Metrics, per study and method (oracle, genforce_comp):
 
@@ -60,23 +61,6 @@ def curve_metrics(study: str, scores: Mapping[str, Mapping[int, Sequence[Mapping
     return out
 
 
-def train_oracle(markers: Mapping, config: Mapping, *, steps: int, batch_size: int, lr: float, seed: int,
-                 train_indenters: Sequence[str], checkpoint=None, label: str = "own"):
-    """own[skin]'s regressor as fit_own trains it (the same sequences, recipe and seed), for
-    `steps` steps."""
-    from stages.force.data import contact_runs, read_runs
-    from stages.force.fit import recipe, split_config
-    from stages.force.train import fit, make_sequences
-    model_cfg, train = split_config(config)
-    runs = contact_runs(markers, train_indenters)
-    force = np.asarray(markers["force"], np.float32)
-    seqs = make_sequences(read_runs(markers, "images", runs), [force[a:b] for a, b in runs],
-                          np.asarray(markers["reference"]), model_cfg)
-    model, _ = fit(seqs, model_cfg, steps=int(steps), batch_size=int(batch_size), lr=float(lr), seed=int(seed),
-                   **recipe(train), desc=label, checkpoint=checkpoint, label=label)
-    return model
-
-
 def train_comp(translated: Mapping, curves: Mapping | None, config: Mapping, *, steps: int,
                finetune_steps: int, batch_size: int, lr: float, seed: int,
                train_indenters: Sequence[str] | None, checkpoint=None, label: str = "genforce_comp"):
@@ -108,7 +92,7 @@ def curves_study(*, study: str, homo: Mapping, material: Mapping, hetero: Mappin
     1x models are the first seed's own and transfer; the longer ones are trained here (every
     fit resumes from the node's checkpoint after an interruption)."""
     from stages.common import torch_threads
-    from stages.force.fit import _checkpoint
+    from stages.force.fit import _checkpoint, train_own
     factors = check_factors(factors)
     groups = {"homo": homo, "material": material, "hetero": hetero}[study]
     pairs_of = [(str(s), str(t)) for group in groups.values() for s, t in group]
@@ -125,8 +109,9 @@ def curves_study(*, study: str, homo: Mapping, material: Mapping, hetero: Mappin
         if method == "oracle":
             if k == 1:
                 return _find(own, "own", skin=t, seed=seed), "weights"
-            return {"model": train_oracle(markers[t], steps=k * int(steps), train_indenters=train_indenters,
-                                          checkpoint=ckpt, label=f"oracle/{t}/{k}x", **kw)}, None
+            model, _ = train_own(markers[t], steps=k * int(steps), train_indenters=train_indenters,
+                                 checkpoint=ckpt, label=f"oracle/{t}/{k}x", desc=f"oracle/{t}/{k}x", **kw)
+            return {"model": model}, None
         art = _find(transfer, "transfer", source=s, target=t, seed=seed)
         if k == 1:
             return art, "genforce_comp"

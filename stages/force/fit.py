@@ -58,6 +58,26 @@ def _split_timing(history: Mapping, ckpt) -> tuple[dict, dict]:
     return kept, timing
 
 
+def train_own(markers: Mapping, config: Mapping, *, steps: int, batch_size: int, lr: float, seed: int,
+              train_indenters: Sequence[str], checkpoint=None, label: str = "own", desc: str = "own"):
+    """(model, history): the regressor on a skin's own images and labels of the contacts of
+    `train_indenters`, with its reference set: own's training (and the learning curve's
+    oracle at other lengths)."""
+    from stages.force.train import fit, make_sequences
+    model_cfg, train = split_config(config)
+    runs = contact_runs(markers, train_indenters)
+    if not runs:
+        raise ValueError(f"{desc}: no contacts of train_indenters {list(train_indenters)}")
+    reference = np.asarray(markers["reference"])
+    force = np.asarray(markers["force"], np.float32)
+    seqs = make_sequences(read_runs(markers, "images", runs), [force[a:b] for a, b in runs],
+                          reference, model_cfg)
+    model, history = fit(seqs, model_cfg, steps=int(steps), batch_size=int(batch_size), lr=float(lr),
+                         seed=int(seed), **recipe(train), desc=desc, checkpoint=checkpoint, label=label)
+    model.set_reference(reference)
+    return model, history
+
+
 def fit_own(*, markers: Mapping, skin: str, train_indenters: Sequence[str], config: Mapping,
             steps: int, batch_size: int, lr: float, seed: int, checkpoint: str | None = None) -> dict:
     """Node `own[skin]`: the regressor on the skin's own images and labels, trained on the
@@ -66,20 +86,12 @@ def fit_own(*, markers: Mapping, skin: str, train_indenters: Sequence[str], conf
     and figures/loss.  `checkpoint` (the engine's): the training resumes from there after an
     interruption (stages.force.train.Checkpoint)."""
     from stages.force.model import to_arrays
-    from stages.force.train import fit, loss_figure, make_sequences
-    model_cfg, train = split_config(config)
-    runs = contact_runs(markers, train_indenters)
-    if not runs:
-        raise ValueError(f"fit_own[{skin}]: no contacts of train_indenters {list(train_indenters)}")
-    reference = np.asarray(markers["reference"])
-    force = np.asarray(markers["force"], np.float32)
-    seqs = make_sequences(read_runs(markers, "images", runs), [force[a:b] for a, b in runs],
-                          reference, model_cfg)
+    from stages.force.train import loss_figure
     ckpt = _checkpoint(checkpoint)
-    model, history = fit(seqs, model_cfg, steps=int(steps), batch_size=int(batch_size), lr=float(lr),
-                         seed=int(seed), **recipe(train), desc=f"own[{skin}]",
-                         checkpoint=ckpt, label="own")
-    model.set_reference(reference)
+    model, history = train_own(markers, config, steps=steps, batch_size=batch_size, lr=lr, seed=seed,
+                               train_indenters=train_indenters, checkpoint=ckpt, label="own",
+                               desc=f"own[{skin}]")
+    _, train = split_config(config)
     kept, timing = _split_timing(history, ckpt)
     return {"weights": to_arrays(model),
             "attrs": {"config": model.config, "train": train, "skin": skin,
