@@ -12,6 +12,8 @@ Input references:
                            the remaining grid values ("b=2" or just "2" for one variable)
   "up[a=@params.key]"      gather the instances whose `a` is in that params list (keyed
                            by `a` too), so a node needs only the instances it reads
+  "up[a=@arg.{var}]"       the same with the list a node param (a mapping) holds at this
+                           instance's value of var: each instance gathers its own members
   "{seq[{skin}]}"          a template indexing a node param by this instance's grid value; a
                            reference that formats to "" is no input (the function's default)
 
@@ -304,13 +306,22 @@ class Graph:
                                         f"variable {sorted(unknown)}")
                 within = {}             # var -> the values a "var=@params.key" selector allows
                 for k, v in sel.items():
-                    if v.startswith("@"):   # a node param of this instance, else a params key
-                        got = resolved[v[1:]] if v[1:] in resolved else P.get(params, v[1:])
+                    if v.startswith("@"):   # a node param of this instance (or a key of it), else a params key
+                        head, _, within_key = v[1:].partition(".")
+                        if head in resolved:
+                            got = resolved[head]
+                            if within_key:
+                                if not isinstance(got, Mapping) or within_key not in got:
+                                    raise PipelineError(f"node '{inst.name}' input '{arg}': param {head} "
+                                                        f"has no entry {within_key!r} to select {up_name}'s {k}")
+                                got = got[within_key]
+                        else:
+                            got = P.get(params, v[1:])
                         if not isinstance(got, list):
                             raise PipelineError(f"node '{node.name}' input '{arg}': {v[1:]} must be a "
                                                 f"list to select {up_name}'s {k}, got {type(got).__name__}")
                         within[k] = {_fmt(x) for x in got}
-                        if v[1:] not in resolved:
+                        if head not in resolved:
                             inst.param_keys.append(v[1:])
 
                 def chosen(c):

@@ -211,19 +211,35 @@ def force_sensors(sensors: Mapping, studies: Mapping, data_source="twin", data_r
     return active(sensors, studies, FORCE_STUDIES, data_source, data_root)
 
 
-def m2m_groups(sensors: Mapping, studies: Mapping, data_source="twin", data_root=None) -> list[list[str]]:
-    """The sensors M2M's fine-tune pairs frames among: one group of all the force studies'
-    sensors on the twin, whose sensors all follow one trajectory ([] says so); on the authors'
-    data, one group per set, whose sensors were collected along the same contacts (the authors
-    fine-tune one M2M per set: a contact number of one set is no location of another's)."""
+TWIN_M2M = "twin"   # the one M2M fine-tune of the twin's force sensors
+
+
+def m2m_members(sensors: Mapping, studies: Mapping, data_source="twin", data_root=None) -> dict[str, list[str]]:
+    """{M2M fine-tune: the sensors it pairs frames among}.  On the twin, whose sensors all
+    follow one trajectory, one ("twin") of all the force studies' sensors; on the authors'
+    data, one per set, named by it, whose sensors were collected along the same contacts (the
+    authors fine-tune one M2M per set: a contact number of one set is no location of
+    another's), so a set's bad data stops only the studies that read it."""
     if not _authors(data_source):
-        return []
-    out = []
+        return {TWIN_M2M: force_sensors(sensors, studies, data_source, data_root)}
+    out: dict[str, list[str]] = {}
     for study in FORCE_STUDIES:
-        group = [n for n in members(sensors, studies, study, data_source, data_root) if not any(n in g for g in out)]
+        taken = {n for g in out.values() for n in g}
+        group = [n for n in members(sensors, studies, study, data_source, data_root) if n not in taken]
         if len(group) > 1:
-            out.append(group)
+            out[AUTHORS_SETS[study]] = group
     return out
+
+
+def m2m_fits(sensors: Mapping, studies: Mapping, data_source="twin", data_root=None) -> list[str]:
+    """The grid of the m2m node: its fine-tunes' names (m2m_members)."""
+    return list(m2m_members(sensors, studies, data_source, data_root))
+
+
+def m2m_of(sensors: Mapping, studies: Mapping, data_source="twin", data_root=None) -> dict[str, str]:
+    """{sensor: the m2m instance whose fine-tune holds it}, for translate's model input."""
+    return {n: f"m2m[fit={fit}]" for fit, names in m2m_members(sensors, studies, data_source, data_root).items()
+            for n in names}
 
 
 # -- which node holds a sensor's data: the graph's Wiring params ------------------------------

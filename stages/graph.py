@@ -138,12 +138,15 @@ GRAPH.node("m2m_sim", "stages.m2m.fit:pretrain",
                    "seed": "m2m.pretrain.seed", "width": "m2m.pretrain.width",
                    "timesteps": "m2m.pretrain.timesteps"},
            description="M2M generator trained from scratch on the 12 simulation patterns")
+# one fine-tune per set of sensors collected along the same contacts: the twin's, or each of
+# the authors' sets (stages.catalogue.m2m_members)
 GRAPH.node("m2m", "stages.m2m.fit:finetune",
-           inputs={"base": "m2m_sim", "markers": _SEQS_GATHER % "skins"},
-           params={**_SEQS, "skins": _cat("force_sensors"), "groups": _cat("m2m_groups"),
+           inputs={"base": "m2m_sim", "markers": "{seqs[node]}[{seqs[var]}=@members.{fit}]"},
+           params={**_SEQS, "members": Wiring("stages.catalogue:m2m_members", _CAT),
                    "train_indenters": "splits.m2m_indenters", "pairs_per_skin": "m2m.finetune.pairs_per_skin", "steps": "m2m.finetune.steps",
                    "batch_size": "m2m.finetune.batch_size", "lr": "m2m.finetune.lr",
                    "seed": "m2m.finetune.seed"},
+           grid={"fit": _cat("m2m_fits")},
            description="M2M fine-tuned to the force studies' sensors with location-paired frames of the training indenters")
 _EVAL = {"eval_indenters": "splits.test_indenters", "val_indenters": "splits.val_indenters",
          "n_eval": "m2m.n_eval"}
@@ -155,8 +158,9 @@ GRAPH.node("translate_sim", "stages.m2m.translate:translate_sim_sequence",
            description="a simulation pattern's sequence in another pattern's style")
 _TRANSFER_PAIRS = _cat("transfer_pairs")
 GRAPH.node("translate", "stages.m2m.translate:translate_sequence",
-           inputs={"model": "m2m", "source_markers": "{seq[{source}]}", "target_markers": "{seq[{target}]}"},
+           inputs={"model": "{m2m_of[{source}]}", "source_markers": "{seq[{source}]}", "target_markers": "{seq[{target}]}"},
            params={**_EVAL, **_SEQ, "sampler_steps": "m2m.sampler_steps",
+                   "m2m_of": Wiring("stages.catalogue:m2m_of", _CAT),
                    "train_indenters": "splits.train_indenters"},
            grid={"source,target": _TRANSFER_PAIRS},
            description="a calibrated sensor's sequence in an uncalibrated sensor's style")

@@ -200,7 +200,7 @@ def test_a_sensor_copied_under_a_new_name_joins_its_family(tmp_path):
     assert {f"own[skin={new},seed={k}]" for k in seeds} <= set(added) and seeds
     assert inst[f"render[skin={new}]"].inputs["deform"] == "deform[sensor=gelsight-r10]"
     assert not any(n.startswith(("deform[", "calibrate[")) for n in added)
-    assert new in inst["m2m"].params["skins"]
+    assert new in inst["m2m[fit=twin]"].inputs["markers"]
     homo = {tuple(p) for g in inst["homo"].params["groups"].values() for p in g}
     assert {("gelsight-A-II", new), (new, "gelsight-A-II")} <= homo
     assert f"transfer[source={new},target=gelsight-A-II,seed=0]" in added
@@ -293,7 +293,7 @@ SAME_IN_EVERY_EXECUTOR = [
     "indenters", "sim_trajectory", "collection_trajectory", "calibration_trajectory", "patterns",
     "contact_check", "deform[sensor=sim]", "calibrate[sensor=gelsight-r6]", "render[skin=Array1]",
     "taxels[skin=uskin-3axis]", "markers[skin=Array1]", "features[skin=Array1]",
-    "flow_warp[source=Array1,target=Array2]", "m2m_sim", "m2m",
+    "flow_warp[source=Array1,target=Array2]", "m2m_sim", "m2m[fit=twin]",
     "translate_sim[source=Array1,target=Array2]", "translate[source=gelsight-A-I,target=gelsight-A-II]",
     "own[skin=gelsight-A-II,seed=0]"]
 LEFT_TO_A_WHOLE_RUN = {"transfer", "ablation", "curves", "sim_m2m", "homo", "material", "hetero",

@@ -65,35 +65,16 @@ def _one_per_style(skins: Sequence[str], images: np.ndarray, refs: np.ndarray):
 
 
 def _train(net, config, markers, skins, train_indenters, per_skin, steps, batch_size, lr, seed,
-           title, checkpoint=None, groups=()):
+           title, checkpoint=None):
     from stages.m2m.model import Translator, state_arrays
-    from stages.m2m.train import GroupBatches, PairBatches, fit
-    merged: dict[str, str] = {}
-    if groups:          # frames are paired within each group only (GroupBatches)
-        missing = sorted(set(skins) - {s for g in groups for s in g})
-        if missing:
-            raise ValueError(f"{title}: skins {missing} are in no group of {groups}")
-        parts = []
-        for group in groups:
-            _, group_rows = paired_table(markers, group, train_indenters, per_skin)
-            kept, ims, rfs, same = _one_per_style(list(group), *_paired_arrays(markers, group, group_rows,
-                                                                                config["size"]))
-            merged.update(same)
-            if len(kept) > 1:                           # one style alone: nothing to translate
-                parts.append((kept, ims, rfs))
-        frames = np.zeros(sum(im.shape[1] for _, im, _ in parts))
-        trainable = bool(parts)
-        if trainable:
-            images, refs = parts[0][1], parts[0][2]       # the samples figure shows the first group
-    else:
-        frames, rows = paired_table(markers, skins, train_indenters, per_skin)
-        kept, images, refs, merged = _one_per_style(list(skins), *_paired_arrays(markers, skins, rows,
-                                                                                  config["size"]))
-        trainable = len(kept) > 1
+    from stages.m2m.train import PairBatches, fit
+    frames, rows = paired_table(markers, skins, train_indenters, per_skin)
+    kept, images, refs, merged = _one_per_style(list(skins), *_paired_arrays(markers, skins, rows,
+                                                                              config["size"]))
+    trainable = len(kept) > 1
     if trainable:
         with torch_threads():
-            batches = (GroupBatches([PairBatches(im, rf, seed + k) for k, (_, im, rf) in enumerate(parts)],
-                                    [len(g) for g, _, _ in parts], seed) if groups else PairBatches(images, refs, seed))
+            batches = PairBatches(images, refs, seed)
             hist = fit(net, config, batches, steps=int(steps), batch_size=int(batch_size), lr=float(lr),
                        seed=int(seed), progress=title, checkpoint=checkpoint)
             weights = state_arrays(net)
@@ -135,23 +116,24 @@ def pretrain(*, markers: Mapping, skins: list[str], train_indenters: list[str], 
                   "m2m pretrain", checkpoint=checkpoint)
 
 
-def finetune(*, base, markers: Mapping, skins: list[str], train_indenters: list[str],
-             pairs_per_skin: int, steps: int, batch_size: int, lr: float, seed: int,
-             groups: list | None = None, checkpoint: str | None = None) -> dict:
-    """Node m2m: `base` (a pretrained model) fine-tuned on `pairs_per_skin` location-paired
-    frames shared by `skins`, evenly spread over the training indenters' frames.  `groups`
-    (lists of skins): frames are paired within each group alone, a step's examples all drawn
-    from one group (the authors' sets, each collected along its own contacts); empty: one group.
-    Skins of one marker style are one target, the first of them standing for it (attrs
-    same_style: skin -> that first one); a group of one style trains nothing.
+def finetune(*, base, markers: Mapping, train_indenters: list[str], pairs_per_skin: int, steps: int,
+             batch_size: int, lr: float, seed: int, skins: list[str] | None = None,
+             fit: str | None = None, checkpoint: str | None = None) -> dict:
+    """Node m2m[fit]: `base` (a pretrained model) fine-tuned on `pairs_per_skin` location-paired
+    frames shared by `skins` (default: every one of `markers`, in its order: one fine-tune's
+    sensors, collected along the same contacts), evenly spread over the training indenters'
+    frames.  Skins of one marker style are one target, the first of them standing for it
+    (attrs same_style: skin -> that first one); a set of one style trains nothing.  `fit`
+    names the fine-tune (the grid's: the twin, or one of the authors' sets).
     checkpoint: as pretrain's."""
     from stages.m2m.model import build, weights_of
     config = attrs_of(base)["config"]
     net = build(config, weights_of(base))
-    out = _train(net, config, markers, skins, train_indenters, int(pairs_per_skin), steps, batch_size,
-                 lr, seed, "m2m finetune", checkpoint, [list(g) for g in groups or ()])
-    if groups:
-        out["attrs"]["groups"] = [list(g) for g in groups]
+    out = _train(net, config, markers, list(markers) if skins is None else skins, train_indenters,
+                 int(pairs_per_skin), steps, batch_size, lr, seed,
+                 "m2m finetune" + (f" {fit}" if fit else ""), checkpoint)
     out["attrs"]["base_skins"] = list(attrs_of(base).get("skins", []))
     out["attrs"]["pairs_per_skin"] = int(pairs_per_skin)
+    if fit is not None:
+        out["attrs"]["fit"] = str(fit)
     return out

@@ -79,29 +79,6 @@ class PairBatches:
         return np.ascontiguousarray(x)
 
 
-class GroupBatches:
-    """PairBatches of several groups of skins: each batch is drawn from one group, picked at
-    random in proportion to `weights` (its skins), so no example pairs frames across groups."""
-
-    def __init__(self, parts: list, weights, seed: int):
-        if not parts:
-            raise ValueError("GroupBatches needs at least one group")
-        self.parts = parts
-        self.p = np.asarray(weights, float) / float(np.sum(weights))
-        self.rng = np.random.default_rng(seed)
-
-    def __call__(self, batch: int):
-        return self.parts[int(self.rng.choice(len(self.parts), p=self.p))](batch)
-
-    def state(self) -> dict:
-        return {"rng": self.rng.bit_generator.state, "parts": [b.state() for b in self.parts]}
-
-    def restore(self, state: dict) -> None:
-        self.rng.bit_generator.state = state["rng"]
-        for b, st in zip(self.parts, state["parts"]):
-            b.restore(st)
-
-
 def loss_fn(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """BCE on logits + DICE_WEIGHT * (1 - soft Dice) of the marker probability."""
     bce = F.binary_cross_entropy_with_logits(logits, target)

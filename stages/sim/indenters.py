@@ -3,14 +3,16 @@
 Frame convention for every indenter mesh (mm):
   * the tip's lowest point is at z = 0 and the body extends to +z (the pad surface is the
     plane z = 0 and pressing moves the indenter towards -z, see ``trajectory.py``);
-  * the lateral reference point ("the tip position") is the origin: each mesh is centred so
-    that the centre of its x-y bounding box is at (0, 0).
+  * the lateral reference point ("the tip position") is the origin, the centre of the
+    authors' 16 x 16 mm printing mount: a shape that is not symmetric about it (moon, pacman,
+    random, triangle, wave) sits where it sits on their mount.
 
-The authors' CAD files are not available; shapes are rebuilt from the names and the paper's
-pictures at realistic sizes (tips 4-12 mm across, 6-12 mm tall). The seen/unseen split used by
-the authors is not published: we keep the 12 basic primitives as SEEN and hold out 6 shapes
-whose contact footprints appear nowhere in the seen group (dot-in-ring, crescent, notched disc,
-random bumps, curved ring, periodic ridges) as UNSEEN.
+The dimensions are the authors' (their repository's sim/assets/indenters/input/stl, each shape
+printed 10 mm tall on a 16 x 16 x 10 mm mount), measured from those files with
+stages.sim.stl and this module's height maps; outlines they draw freehand (random, triangle)
+are their vertices. The mount itself is left out: it lies 10 mm above the tip, far beyond any
+pressing depth. UNSEEN is the authors' unseen group, from their training configs (the test
+split of `splits`); the other 12 are SEEN.
 
 Height maps: :func:`height_map` rasterises an indenter's lower surface on the pad grid by a
 numpy z-buffer over its downward-facing triangles (no ray-tracing backend needed).
@@ -30,34 +32,48 @@ INDENTERS: tuple[str, ...] = (
     "hexagon", "line", "moon", "pacman", "prism", "random", "sphere", "sphere_s", "torus",
     "triangle", "wave",
 )
-UNSEEN: tuple[str, ...] = ("dotin", "moon", "pacman", "random", "torus", "wave")
+UNSEEN: tuple[str, ...] = ("cone", "pacman", "sphere_s", "torus", "triangle", "wave")
 SEEN: tuple[str, ...] = tuple(n for n in INDENTERS if n not in UNSEEN)
 CALIBRATION_INDENTERS: tuple[str, ...] = ("calib_prism", "calib_cone", "calib_punch")
 # indenter_id in every trajectory indexes this tuple; its first 18 entries are INDENTERS.
 ALL_INDENTERS: tuple[str, ...] = INDENTERS + CALIBRATION_INDENTERS
 
-RANDOM_SEED = 20250611
 _SECTIONS = 64  # multiple of 4, so revolved solids have vertices on the +-x / +-y extremes
 
+TIP_HEIGHT = 10.0  # every shape rises 10 mm from its tip to the authors' mount
+
+# The authors' freehand outlines (mm, in the mount's frame), vertex by vertex from their STLs.
+RANDOM_OUTLINE = (
+    (0.589, 1.58), (0.767, 1.844), (1.006, 2.057), (1.29, 2.204), (1.601, 2.276), (1.92, 2.27),
+    (2.228, 2.185), (2.505, 2.027), (2.735, 1.805), (2.903, 1.533), (2.999, 1.229), (3.017, 0.91),
+    (1.801, -0.491), (3.606, -0.858), (2.121, -2.34), (-3.121, -1.199), (-3.372, 0.737),
+    (-2.567, 0.918), (-2.538, 0.598), (-2.436, 0.294), (-2.265, 0.022), (-2.036, -0.203),
+    (-1.76, -0.367), (-1.454, -0.463), (-1.133, -0.485), (-0.817, -0.431), (-0.522, -0.305),
+    (-0.264, -0.114), (-0.058, 0.133), (0.084, 0.42))
+TRIANGLE_VERTICES = ((0.5, -2.5), (-3.5, -1.983), (3.5, 2.5))
+PACMAN_MOUTH_DEG = (-33.0, 37.0)  # the mouth's edges, counter-clockwise from +x
+DOTS_ANGLES_DEG = (36.0, 108.0, 180.0, 252.0, 324.0)  # five domes on a 3 mm circle
+
 _DESCRIPTIONS = {
-    "cone": ("apex-down cone, base diameter 10 mm, height 8 mm", 10.0),
-    "cylinder": ("flat cylindrical punch, diameter 8 mm, height 10 mm", 8.0),
-    "cylinder_sh": ("cylindrical shell, outer diameter 8 mm, wall 1 mm, height 10 mm", 8.0),
-    "cylinder_si": ("cylinder on its side, diameter 6 mm, length 10 mm along x", 6.0),
-    "dotin": ("dot (diameter 2 mm) inside a ring (6-8 mm), 2 mm recess between", 8.0),
-    "dots": ("4 pins (diameter 1.5 mm, pitch 5 mm) under a 10x10 mm plate", 1.5),
-    "hemisphere": ("dome, radius 6 mm, flat side up", 12.0),
-    "hexagon": ("hexagonal flat punch, circumradius 4 mm (corner on +x)", 8.0),
-    "line": ("flat bar 10 x 1 mm (long axis along x)", 1.0),
-    "moon": ("crescent: disc r 4 minus disc r 4 offset 2.5 mm along +x", 8.0),
-    "pacman": ("disc r 4 with a 60 deg mouth opening towards +x", 8.0),
-    "prism": ("triangular prism edge-down (knife edge along y, 10 mm), 8 mm wide, 6 mm tall", 8.0),
-    "random": ("disc r 5 with 9 random spherical bumps (fixed seed)", 10.0),
-    "sphere": ("sphere, diameter 8 mm, on a 4 mm shank", 8.0),
-    "sphere_s": ("small sphere, diameter 4 mm, on a 2 mm shank", 4.0),
-    "torus": ("torus (ring radius 3.5, tube radius 1 mm) under a disc plate", 9.0),
-    "triangle": ("equilateral triangular flat punch, circumradius 4.5 mm (corner on +x)", 9.0),
-    "wave": ("sinusoidal ridges along y: wavelength 4 mm, 1.2 mm peak-to-valley", 10.0),
+    "cone": ("truncated cone, tip diameter 1 mm, base diameter 8 mm, 10 mm tall", 8.0),
+    "cylinder": ("flat cylindrical punch, diameter 6 mm", 6.0),
+    "cylinder_sh": ("cylindrical shell, outer diameter 7 mm, inner 5.4 mm", 7.0),
+    "cylinder_si": ("cylinder on its side, diameter 6 mm, 14 mm long along y", 6.0),
+    "dotin": ("8 x 8 mm square punch with a hemispherical dimple of radius 2 mm", 8.0),
+    "dots": ("5 hemispheres (radius 1 mm, on a 3 mm circle) under a 14 x 14 mm plate", 2.0),
+    "hemisphere": ("spherical cap of radius 20 mm cut to a 14 x 14 mm square", 14.0),
+    "hexagon": ("hexagonal flat punch, circumradius 3.5 mm (corner on +x)", 7.0),
+    "line": ("flat bar 2 x 16 mm (long axis along y)", 2.0),
+    "moon": ("crescent: disc r 3.5 minus disc r 2.7 offset 1.7 mm along +x", 7.0),
+    "pacman": ("disc r 3 with a 70 deg mouth from -33 to +37 deg", 6.0),
+    "prism": ("rectangular flat punch 5 x 7 mm (long side along y)", 5.0),
+    "random": ("freehand flat outline (the authors' 30 vertices)", 7.0),
+    "sphere": ("sphere, diameter 10 mm, on a 5 mm shank", 10.0),
+    "sphere_s": ("small sphere, diameter 6 mm, on a 3 mm shank", 6.0),
+    "torus": ("torus (ring radius 3, tube radius 1.5 mm) on a hollow shank", 9.0),
+    "triangle": ("scalene triangular flat punch (the authors' 3 vertices)", 7.0),
+    "wave": ("two ridges along y (radii 3 and 2 mm, crests at x = -2.2 and +2.45) "
+             "between plates 2 and 1 mm up, 14 x 14 mm", 14.0),
     "calib_prism": ("rigid calibration prism: 90 deg knife edge 15 mm long along y", 12.0),
     "calib_cone": ("rigid calibration cone: 90 deg apex, base diameter 12 mm", 12.0),
     "calib_punch": ("rigid calibration flat punch, diameter 4 mm, height 10 mm", 4.0),
@@ -66,14 +82,13 @@ _DESCRIPTIONS = {
 
 # ---------------------------------------------------------------- mesh construction helpers
 def _finish(mesh: "trimesh.Trimesh") -> "trimesh.Trimesh":
-    """Merge, orient outwards, centre the x-y bbox on the origin and put the tip at z = 0."""
+    """Merge, orient outwards and put the tip at z = 0 (x-y stay in the mount's frame)."""
     mesh.merge_vertices()
     mesh.update_faces(mesh.nondegenerate_faces())
     mesh.remove_unreferenced_vertices()
     if mesh.volume < 0:
         mesh.invert()
-    lo, hi = mesh.bounds
-    mesh.apply_translation([-(lo[0] + hi[0]) / 2, -(lo[1] + hi[1]) / 2, -lo[2]])
+    mesh.apply_translation([0.0, 0.0, -mesh.bounds[0][2]])
     if not mesh.is_watertight:
         raise RuntimeError("indenter mesh is not watertight")
     return mesh
@@ -91,7 +106,7 @@ def _arc(cx, cz, radius, a0, a1, n=48):
     return np.column_stack([cx + radius * np.cos(a), cz + radius * np.sin(a)])
 
 
-def _extrude(poly, height) -> "trimesh.Trimesh":
+def _extrude(poly, height=TIP_HEIGHT) -> "trimesh.Trimesh":
     """Extrude a shapely footprint from z = 0 to ``height`` (flat punch)."""
     import trimesh
 
@@ -99,23 +114,24 @@ def _extrude(poly, height) -> "trimesh.Trimesh":
 
 
 def _extrude_xz(poly, length) -> "trimesh.Trimesh":
-    """Extrude a shapely profile drawn in (x, z) along y (used for edge-down prisms, waves)."""
+    """Extrude a shapely profile drawn in (x, z) along y, centred on y = 0 (edges, ridges)."""
     mesh = _extrude(poly, length)
     rot = np.array([[1, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]], float)
     mesh.apply_transform(rot)  # (u, v, w) -> (u, -w, v)
+    mesh.apply_translation([0.0, length / 2, 0.0])
     return mesh
 
 
-def _union(meshes) -> "trimesh.Trimesh":
+def _boolean(kind, meshes) -> "trimesh.Trimesh":
     import trimesh
 
-    return trimesh.boolean.union(meshes, engine="manifold")
+    return getattr(trimesh.boolean, kind)(meshes, engine="manifold")
 
 
-def _disc(radius):
+def _disc(radius, centre=(0.0, 0.0)):
     from shapely.geometry import Point
 
-    return Point(0.0, 0.0).buffer(radius, quad_segs=_SECTIONS // 4)
+    return Point(*centre).buffer(radius, quad_segs=_SECTIONS // 4)
 
 
 def _regular_polygon(n, circumradius):
@@ -132,23 +148,33 @@ def _sphere_on_shank(radius, shank_radius, top):
     return _revolve(np.vstack([arc, [[shank_radius, top], [0.0, top]]]))
 
 
-def _random_bumps():
+def _ball(radius, centre):
+    """A closed sphere of revolution (``_SECTIONS`` around, 48 along)."""
+    mesh = _revolve(_arc(0.0, 0.0, radius, -np.pi / 2, np.pi / 2))
+    mesh.apply_translation(centre)
+    return mesh
+
+
+def _plate(side, bottom, top=TIP_HEIGHT):
     import trimesh
 
-    rng = np.random.default_rng(RANDOM_SEED)
-    n = 9
-    rad = rng.uniform(0.9, 1.3, n)
-    protrusion = rng.uniform(0.3, 1.2, n)  # < 2 * rad, so every bump overlaps the disc
-    ang, rr = rng.uniform(0, 2 * np.pi, n), 3.5 * np.sqrt(rng.uniform(0, 1, n))
-    base = protrusion.max()  # disc underside; the deepest bump ends at z = 0
-    parts = [trimesh.creation.cylinder(radius=5.0, segment=[[0, 0, base], [0, 0, 10.0]],
-                                       sections=_SECTIONS)]
-    for k in range(n):
-        s = trimesh.creation.icosphere(subdivisions=3, radius=rad[k])
-        s.apply_translation([rr[k] * np.cos(ang[k]), rr[k] * np.sin(ang[k]),
-                             base - protrusion[k] + rad[k]])
-        parts.append(s)
-    return _union(parts)
+    return trimesh.creation.box(bounds=[[-side / 2, -side / 2, bottom], [side / 2, side / 2, top]])
+
+
+def _wave_profile():
+    """The wave's (x, z) cross-section: a plate 2 mm up, a ridge of radius 3 (crest x = -2.2),
+    a rounded trough (radius 0.5, centre (0.367, 0.62)), a ridge of radius 2 (crest x = 2.452),
+    a plate 1 mm up; 14 mm wide."""
+    from shapely.geometry import Polygon
+
+    left = _arc(-2.2, 3.0, 3.0, np.pi + np.arcsin(1 / 3), 2 * np.pi - np.arccos(2.2 / 3), 40)
+    trough = _arc(0.367, 0.62, 0.5, np.pi - np.arccos(0.367 / 0.5),
+                  np.arccos((0.784 - 0.367) / 0.5), 12)
+    right = _arc(2.452, 2.0, 2.0, np.pi + np.arcsin(np.sqrt(4 - (2.452 - 0.784) ** 2) / 2),
+                 2 * np.pi - np.arcsin(1 / 2), 40)
+    x = np.vstack([[[-7.0, 2.0]], left, trough[1:-1], right, [[7.0, 1.0], [7.0, TIP_HEIGHT],
+                                                            [-7.0, TIP_HEIGHT]]])
+    return Polygon(x)
 
 
 def _build(name: str) -> "trimesh.Trimesh":
@@ -156,60 +182,54 @@ def _build(name: str) -> "trimesh.Trimesh":
     from shapely.geometry import Polygon, box
 
     if name == "cone":
-        return _revolve([[0, 0], [5, 8], [0, 8]])
+        return _revolve([[0, 0], [0.5, 0], [4, TIP_HEIGHT], [0, TIP_HEIGHT]])
     if name == "cylinder":
-        return _revolve([[0, 0], [4, 0], [4, 10], [0, 10]])
+        return _revolve([[0, 0], [3, 0], [3, TIP_HEIGHT], [0, TIP_HEIGHT]])
     if name == "cylinder_sh":
-        return _revolve([[3, 0], [4, 0], [4, 10], [3, 10], [3, 0]])
+        return _revolve([[2.7, 0], [3.5, 0], [3.5, TIP_HEIGHT], [2.7, TIP_HEIGHT], [2.7, 0]])
     if name == "cylinder_si":
-        mesh = _revolve([[0, -5], [3, -5], [3, 5], [0, 5]])
-        mesh.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0]))
+        mesh = _revolve([[0, -7], [3, -7], [3, 7], [0, 7]])
+        mesh.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
         return mesh
     if name == "dotin":
-        return _revolve([[0, 0], [1, 0], [1, 2], [3, 2], [3, 0], [4, 0], [4, 10], [0, 10]])
+        return _boolean("difference", [_extrude(box(-4, -4, 4, 4)), _ball(2.0, [0, 0, 0])])
     if name == "dots":
-        parts = [trimesh.creation.box(extents=(10, 10, 6),
-                                      transform=trimesh.transformations.translation_matrix(
-                                          [0, 0, 5]))]
-        for x in (-2.5, 2.5):
-            for y in (-2.5, 2.5):
-                parts.append(trimesh.creation.cylinder(
-                    radius=0.75, segment=[[x, y, 0], [x, y, 2.5]], sections=32))
-        return _union(parts)
+        domes = [_ball(1.0, [3 * np.cos(np.radians(a)), 3 * np.sin(np.radians(a)), 1.0])
+                 for a in DOTS_ANGLES_DEG]
+        return _boolean("union", [_plate(14, 1.0)] + domes)
     if name == "hemisphere":
-        a = np.linspace(0, np.pi / 2, 48)
-        arc = np.column_stack([6 * np.sin(a), 6 - 6 * np.cos(a)])
-        return _revolve(np.vstack([arc, [[0, 6]]]))
+        r = np.linspace(0.0, 7 * np.sqrt(2) + 0.1, 64)
+        cap = np.column_stack([r, 20 - np.sqrt(400 - r ** 2)])
+        dome = _revolve(np.vstack([cap, [[r[-1], TIP_HEIGHT], [0, TIP_HEIGHT]]]))
+        return _boolean("intersection", [dome, _plate(14, -1.0)])
     if name == "hexagon":
-        return _extrude(_regular_polygon(6, 4.0), 10)
+        return _extrude(_regular_polygon(6, 3.5))
     if name == "line":
-        return _extrude(box(-5, -0.5, 5, 0.5), 10)
+        return _extrude(box(-1, -8, 1, 8))
     if name == "moon":
-        from shapely.geometry import Point
-
-        return _extrude(_disc(4.0).difference(Point(2.5, 0).buffer(4.0, quad_segs=16)), 10)
+        return _extrude(_disc(3.5).difference(_disc(2.7, (1.7, 0.0))))
     if name == "pacman":
-        c, s = 10 * np.cos(np.pi / 6), 10 * np.sin(np.pi / 6)
-        return _extrude(_disc(4.0).difference(Polygon([(0, 0), (c, -s), (c, s)])), 10)
+        a0, a1 = np.radians(PACMAN_MOUTH_DEG)
+        mouth = Polygon([(0, 0), (10 * np.cos(a0), 10 * np.sin(a0)), (10 * np.cos(a1), 10 * np.sin(a1))])
+        return _extrude(_disc(3.0).difference(mouth))
     if name == "prism":
-        return _extrude_xz(Polygon([(0, 0), (4, 6), (-4, 6)]), 10)
+        return _extrude(box(-2.5, -3.5, 2.5, 3.5))
     if name == "random":
-        return _random_bumps()
+        return _extrude(Polygon(RANDOM_OUTLINE))
     if name == "sphere":
-        return _sphere_on_shank(4.0, 2.0, 12.0)
+        return _sphere_on_shank(5.0, 2.5, TIP_HEIGHT)
     if name == "sphere_s":
-        return _sphere_on_shank(2.0, 1.0, 10.0)
+        return _sphere_on_shank(3.0, 1.5, TIP_HEIGHT)
     if name == "torus":
-        zp = 1.7  # plate underside: above the 1.5 mm maximum indentation of the tube
-        t = np.arcsin(zp - 1.0)
-        arc = _arc(3.5, 1.0, 1.0, np.pi - t, 2 * np.pi + t, 97)  # passes the bottom (z = 0)
-        return _revolve(np.vstack([[[0, zp]], arc, [[5, zp], [5, 8], [0, 8]]]))
+        # the tube (ring radius 3, tube radius 1.5) joined to a hollow shank from r 2.5 to 3.2:
+        # from the shank's outer wall round the tube's outside, bottom and inside to its inner wall
+        start, end = np.arccos(0.2 / 1.5), np.arccos(-0.5 / 1.5) - 2 * np.pi
+        return _revolve(np.vstack([[[3.2, TIP_HEIGHT]], _arc(3.0, 1.5, 1.5, start, end, 129),
+                                   [[2.5, TIP_HEIGHT], [3.2, TIP_HEIGHT]]]))
     if name == "triangle":
-        return _extrude(_regular_polygon(3, 4.5), 10)
+        return _extrude(Polygon(TRIANGLE_VERTICES))
     if name == "wave":
-        x = np.linspace(-5, 5, 101)
-        z = 0.6 * (1 - np.cos(2 * np.pi * x / 4.0))  # crests (z = 0) at x = 0, +-4
-        return _extrude_xz(Polygon(np.vstack([np.column_stack([x, z]), [[5, 8], [-5, 8]]])), 10)
+        return _extrude_xz(_wave_profile(), 14.0)
     if name == "calib_prism":
         return _extrude_xz(Polygon([(0, 0), (6, 6), (-6, 6)]), 15)
     if name == "calib_cone":
@@ -225,7 +245,7 @@ def _cached(name: str) -> "trimesh.Trimesh":
 
 
 def make_indenter(name: str) -> "trimesh.Trimesh":
-    """A fresh copy of indenter ``name`` (watertight, mm, tip at z = 0, x-y bbox centred)."""
+    """A fresh copy of indenter ``name`` (watertight, mm, tip at z = 0, the mount's frame)."""
     if name not in _DESCRIPTIONS:
         raise KeyError(f"unknown indenter {name!r}; known: {', '.join(ALL_INDENTERS)}")
     return _cached(name).copy()

@@ -96,3 +96,44 @@ def stl_meshes(stl_dir, names, tip: str = "auto") -> dict:
         raise InputError(f"indenters.stl_dir: {folder} holds no <name>.stl for any of indenters.names "
                          f"({', '.join(names)})")
     return found
+
+
+FOOTPRINT_DEPTHS = (0.5, 1.0, 1.5)   # mm: the depths at which contact footprints are compared
+
+
+def footprint_cells(mesh_or_name, shape, spacing: float, depths=FOOTPRINT_DEPTHS) -> list:
+    """Cells of a pad grid whose indenter surface lies within each depth of the tip."""
+    from stages.sim.indenters import height_map
+    hm = height_map(mesh_or_name, shape=shape, spacing=spacing)
+    return [int(np.count_nonzero(hm <= d)) for d in depths]
+
+
+def compare_footprints(stl_dir, names=None, shape=(65, 65), spacing: float = 0.390625,
+                       tip: str = "auto", depths=FOOTPRINT_DEPTHS) -> list:
+    """For each indenter with a <name>.stl in `stl_dir`: its footprint cells and the procedural
+    shape's at each depth, and their largest relative difference (the default grid is the
+    GelSight pads')."""
+    from stages.sim.indenters import INDENTERS
+    found = stl_meshes(stl_dir, list(INDENTERS if names is None else names), tip)
+    rows = []
+    for name, mesh in found.items():
+        stl, ours = footprint_cells(mesh, shape, spacing, depths), footprint_cells(name, shape, spacing, depths)
+        rel = max(abs(a - b) / max(a, 1) for a, b in zip(stl, ours))
+        rows.append({"name": name, "stl": stl, "procedural": ours, "max_rel_diff": rel})
+    return rows
+
+
+if __name__ == "__main__":   # python -m stages.sim.stl DIR: a folder's STLs against the procedural shapes
+    import sys
+    if len(sys.argv) != 2:
+        sys.exit("usage: python -m stages.sim.stl STL_DIR")
+    try:
+        table = compare_footprints(sys.argv[1])
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(2)
+    print("cells of the 65 x 65 GelSight grid (0.39 mm) within "
+          + " / ".join(f"{d} mm" for d in FOOTPRINT_DEPTHS) + " of the tip: STL | procedural")
+    for r in table:
+        print(f"{r['name']:12s} {' '.join(f'{c:5d}' for c in r['stl'])} | "
+              f"{' '.join(f'{c:5d}' for c in r['procedural'])}   {100 * r['max_rel_diff']:5.1f}%")

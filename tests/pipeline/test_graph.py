@@ -285,6 +285,9 @@ def members(mode, need):
     if need > 2:
         raise Missing(f"the set has 2 sensors, not {need}")
     return ["a", "b"]
+
+def sets(table):
+    return {name: list(members) for name, members in table.items()}
 '''
 
 
@@ -322,6 +325,25 @@ def test_wiring_chooses_inputs_and_stays_out_of_params(wired):
     assert real["study"].inputs["seqs"] == {"a": "ingest[sensor=a]", "b": "ingest[sensor=b]"}
     assert real["study"].params == {"members": ["a", "b"]}
     assert wired.closure(real, ["fit[skin=a]"]) == ["ingest[sensor=a]", "fit[skin=a]"]
+
+
+def test_a_mapping_param_selector_gathers_each_instances_own_members(wired):
+    """'up[var=@arg.{g}]' reads the list a mapping param holds at the instance's value of g:
+    each fine-tune of a set gathers its set's sensors only, so one set's bad sensor is no
+    input of another's; an entry the mapping lacks is an error naming it."""
+    from pipeline.graph import Wiring
+    wired.node("tune", "m:t", inputs={"seqs": "{src[node]}[{src[var]}=@sets.{fit}]"},
+               params={"src": Wiring("wirer_mod:node_of", {"mode": "data.mode"}),
+                       "sets": Wiring("wirer_mod:sets", {"table": "table"})},
+               grid={"fit": "fits"})
+    base = {"data": {"mode": "real"}, "lr": 0.1, "need": 2, "fits": ["x", "y"]}
+    inst = wired.expand({**base, "table": {"x": ["a"], "y": ["b", "a"]}})
+    assert inst["tune[fit=x]"].inputs == {"seqs": {"a": "ingest[sensor=a]"}}
+    assert inst["tune[fit=y]"].inputs == {"seqs": {"a": "ingest[sensor=a]", "b": "ingest[sensor=b]"}}
+    assert inst["tune[fit=x]"].params == {} and "table" in inst["tune[fit=x]"].param_keys
+    with pytest.raises(PipelineError, match=r"^node 'tune\[fit=y\]' input 'seqs': param sets has no entry 'y' "
+                                            r"to select ingest's sensor$"):
+        wired.expand({**base, "table": {"x": ["a"]}})
 
 
 def test_a_listing_param_error_waits_for_a_run_that_needs_its_node(wired):

@@ -61,9 +61,10 @@ def test_authors_members_pairs_and_groups(folders):
     assert C.bodies(sensors, studies, **data) == ["sim"] and C.bodies(sensors, studies, True, **data) == []
     assert len(C.transfer_pairs(sensors, studies, **data)) == 2 + 2 + 2
     # M2M pairs frames within a set only: a contact number of one set is no location of another's
-    assert C.m2m_groups(sensors, studies, **data) == [["Array-I", "Array-II"], ["ratio_6", "ratio_8"],
-                                                     ["gelsight", "tactip"]]
-    assert C.m2m_groups(sensors, studies) == []
+    assert C.m2m_members(sensors, studies, **data) == {"homo": ["Array-I", "Array-II"], "modulus": ["ratio_6", "ratio_8"],
+                                                      "hetero": ["gelsight", "tactip"]}
+    assert C.m2m_of(sensors, studies, **data)["ratio_8"] == "m2m[fit=modulus]"
+    assert C.m2m_members(sensors, studies) == {"twin": C.force_sensors(sensors, studies)}
     seq = C.sequences(sensors, studies, **data)
     assert seq["Array1"] == "markers[skin=Array1]" and seq["ratio_6"] == "ingest[sensor=ratio_6]"
     assert C.sequence_node(sensors, studies, **data) == {"node": "ingest", "var": "sensor"}
@@ -114,7 +115,10 @@ def test_the_graph_reads_ingest_and_the_authors_curves(folders):
                         "target_calibration": "authors_calibration[sensor=ratio_6]",
                         "target_markers": "ingest[sensor=ratio_6]", "captured_calibrations": {}}
     assert "source_calibration" not in inst["transfer[source=Array-I,target=Array-II,seed=0]"].inputs
-    assert inst["m2m"].inputs["markers"]["tactip"] == "ingest[sensor=tactip]"
+    # one M2M fine-tune per set, each gathering its own sensors
+    assert inst["m2m[fit=hetero]"].inputs["markers"] == {"gelsight": "ingest[sensor=gelsight]",
+                                                         "tactip": "ingest[sensor=tactip]"}
+    assert inst["translate[source=ratio_8,target=ratio_6]"].inputs["model"] == "m2m[fit=modulus]"
     assert inst["m2m_sim"].inputs["markers"] == {f"Array{k}": f"markers[skin=Array{k}]" for k in range(1, 5)}
     assert inst["features[skin=Array1]"].inputs["markers"] == "markers[skin=Array1]"
     assert inst["features[skin=gelsight]"].inputs["markers"] == "ingest[sensor=gelsight]"
@@ -129,9 +133,9 @@ def test_the_graph_reads_ingest_and_the_authors_curves(folders):
 # the references the twin's nodes had before the authors' data could take their place
 TWIN_INPUTS = {
     "own": {"markers": "markers[skin={skin}]"}, "features": {"markers": "markers[skin={skin}]"},
-    "translate": {"source_markers": "markers[skin={source}]", "target_markers": "markers[skin={target}]"},
     "flow_warp": {"source_markers": "markers[skin={source}]", "target_markers": "markers[skin={target}]"},
     "m2m": {"markers": "markers[skin=@skins]"}, "ablation": {"markers": "markers[*]"},
+    "translate": {"model": "m2m", "source_markers": "markers[skin={source}]", "target_markers": "markers[skin={target}]"},
     "curves": {"markers": "markers[*]"},
     "transfer": {"source_calibration": "calibrate[sensor={source_spec[body]}]",
                  "target_calibration": "calibrate[sensor={target_spec[body]}]",
@@ -147,13 +151,16 @@ SPECS = {"source_spec": "sensors.{source}", "target_spec": "sensors.{target}"}
 def test_the_twins_plan_is_unchanged(profile):
     """With data.source twin every instance keeps its name, params and inputs (so the stores'
     cache keys), against the graph with the twin's plain references and no Wiring; transfer
-    alone no longer reads its sensors' whole catalogue entries (it took only their body)."""
-    from stages.graph import GRAPH
+    alone no longer reads its sensors' whole catalogue entries (it took only their body), and
+    the one M2M fine-tune of the twin no longer takes its sensors as a param (it fine-tunes on
+    every sensor it gathers)."""
+    from stages.graph import GRAPH, _cat
     plain = Graph()
     for name, node in GRAPH.nodes.items():
         params = {k: v for k, v in node.params.items() if not isinstance(v, Wiring)}
         plain.node(name, node.func, inputs={**node.inputs, **TWIN_INPUTS.get(name, {})},
-                   params={**params, **(SPECS if name == "transfer" else {})}, grid=node.grid,
+                   params={**params, **(SPECS if name == "transfer" else {}),
+                           **({"skins": _cat("force_sensors")} if name == "m2m" else {})}, grid=node.grid,
                    source=node.source, on_demand=node.on_demand)
     params = load_params(profile)
     now, before = GRAPH.expand(params), plain.expand(params)
@@ -162,6 +169,9 @@ def test_the_twins_plan_is_unchanged(profile):
         old = before[n]
         if inst.node.name == "transfer":
             assert {k: v for k, v in old.params.items() if k not in SPECS} == inst.params, n
+        elif inst.node.name == "m2m":
+            assert {k: v for k, v in old.params.items() if k != "skins"} == inst.params, n
+            assert old.params["skins"] == list(inst.inputs["markers"]), n
         else:
             assert old.params == inst.params, n
         assert old.inputs == inst.inputs, n
@@ -184,8 +194,10 @@ def _cli(*args):
 def homo_run(tmp_path_factory):
     base = tmp_path_factory.mktemp("authors")
     root = base / "dataset"
-    fx.write_dataset(root, sets={"homo": {HOMO[0]: {}, HOMO[1]: {"jpg": True}}},
-                     indenters={"homo": INDENTERS}, points=(1,))
+    fx.write_dataset(root, sets={"homo": {HOMO[0]: {}, HOMO[1]: {"jpg": True}},
+                                 "hetero": {"gelsight": {}, "tactip": {}}},
+                     indenters={"homo": INDENTERS, "hetero": INDENTERS}, points=(1,))
+    (root / "training" / "hetero" / "img" / "tactip" / "moon" / "1" / "0001.npy").unlink()   # one set broken
     data = ["--profile", "ci", "-p", "data.source=authors", "-p", f"data.root={root}", "--store", str(base / "store")]
     p = _cli("run", "homo", *data, "--json")
     assert p.returncode == 0, p.stderr[-3000:]
@@ -209,12 +221,27 @@ def test_a_homo_study_runs_on_the_authors_sensors(homo_run):
             # one gel, no calibration: the compensation is the identity
             assert metrics[f"{split}/{pair}/genforce_comp/mae_total"] == metrics[f"{split}/{pair}/genforce/mae_total"]
         assert np.isfinite(metrics[f"homo/{pairs[0]}/m2m/fid"])
-    with Artifact(_cli("get", "m2m", *data).stdout.strip()) as art:
+    with Artifact(_cli("get", "m2m[fit=homo]", *data).stdout.strip()) as art:
         attrs = attrs_of(art)
     assert attrs["skins"] == list(HOMO) and attrs["base_skins"] == ["Array1", "Array2", "Array3", "Array4"]
     with Artifact(_cli("get", f"transfer[source={HOMO[0]},target={HOMO[1]},seed=0]", *data).stdout.strip()) as art:
         attrs = attrs_of(art)
     assert attrs["compensation_identity"] is True and attrs["curves"] is None
+
+
+def test_one_sets_bad_file_stops_only_the_studies_that_read_it(homo_run):
+    """The hetero set lacks a frame: homo ran beside it (homo_run, its own M2M fine-tune),
+    and hetero stops with one line naming the file, exit 2, nothing of the store lost (what
+    it finished before, gelsight's data, stays)."""
+    root, store, data, out = homo_run
+    ran = [n["name"] for n in out["nodes"]]
+    assert "m2m[fit=homo]" in ran and not any("hetero" in n or "tactip" in n for n in ran)
+    before = sorted(os.listdir(store / "objects"))
+    p = _cli("run", "hetero", *data)
+    assert p.returncode == 2 and p.stderr.count("\n") == 1, p.stderr[-3000:]
+    missing = root / "training" / "hetero" / "img" / "tactip" / "moon" / "1" / "0001.npy"
+    assert p.stderr == f"pipeline: error: node ingest[sensor=tactip]: missing frame {missing}\n"
+    assert set(before) <= set(os.listdir(store / "objects"))
 
 
 def test_a_study_without_its_set_is_one_line_and_runs_nothing(homo_run):
@@ -241,7 +268,7 @@ def test_a_material_study_of_one_marker_layout_runs(tmp_path):
     data = ["--profile", "ci", "-p", "data.source=authors", "-p", f"data.root={root}", "--store", str(tmp_path / "store")]
     p = _cli("run", "material", *data)
     assert p.returncode == 0, p.stderr[-3000:]
-    with Artifact(_cli("get", "m2m", *data).stdout.strip()) as art:
+    with Artifact(_cli("get", "m2m[fit=modulus]", *data).stdout.strip()) as art:
         assert attrs_of(art)["same_style"] == {"ratio_18": "ratio_6"} and attrs_of(art)["steps"] == 0
     with Artifact(_cli("get", "translate[source=ratio_6,target=ratio_18]", *data).stdout.strip()) as art:
         assert attrs_of(art)["same_style"] is True

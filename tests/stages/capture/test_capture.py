@@ -189,8 +189,11 @@ def test_serial_ft_xela_and_slcan_agree_with_the_twin(run_capture, tmp_path, ci,
                                           sensor="uskin", spec=ci["sensors"]["uskin"], materials=ci["materials"]))
     force = np.concatenate([c["force"] for c in chunks])
     disp = np.concatenate([c["displacement"] for c in chunks])
-    np.testing.assert_allclose(a["force"], force, atol=2e-6)      # 6 decimals on the serial line
-    np.testing.assert_allclose(b["force"], force, atol=2e-6)
+    # 6 decimals on the serial line, and the solver's tolerance (1e-5 of a depth): the emulators'
+    # world warm-starts each contact's iteration from its own last frame, deform from the sequence's
+    tol = 2e-6 + 1e-5 * float(np.abs(force).max())
+    np.testing.assert_allclose(a["force"], force, atol=tol)
+    np.testing.assert_allclose(b["force"], force, atol=tol)
     signals = taxel_signals(disp, final["grid_x"], final["grid_y"], pad_mm=ci["sensors"]["uskin"]["pad_mm"],
                             noise=0.0)
     np.testing.assert_array_equal(a["signals"], signals)

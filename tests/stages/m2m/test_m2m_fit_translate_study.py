@@ -181,9 +181,10 @@ def test_skins_of_one_marker_style_are_one_target(skins, trained):
     assert alone["attrs"]["steps"] == 0 and alone["attrs"]["same_style"] == {"Copy3": "Circle3"}
     for k, v in trained["weights"].items():
         np.testing.assert_array_equal(alone["weights"][k], v, err_msg=k)
-    grouped = fit.finetune(markers=twin, skins=["Array3", "Circle3", "Copy3"],
-                           groups=[["Circle3", "Copy3"], ["Array3", "Circle3"]], **kw)
-    assert grouped["attrs"]["same_style"] == {"Copy3": "Circle3"} and grouped["attrs"]["steps"] == 5
+    gathered = fit.finetune(markers={s: twin[s] for s in ("Array3", "Circle3", "Copy3")}, **kw)   # skins: all
+    assert gathered["attrs"]["skins"] == ["Array3", "Circle3", "Copy3"] and gathered["attrs"]["steps"] == 5
+    for k, v in plain["weights"].items():
+        np.testing.assert_array_equal(gathered["weights"][k], v, err_msg=k)
 
 
 def test_a_translation_within_one_marker_style_is_the_identity(skins, trained):

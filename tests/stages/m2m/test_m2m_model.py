@@ -243,27 +243,3 @@ def test_an_unreadable_or_foreign_checkpoint_is_set_aside_and_training_starts_ov
     with pytest.warns(UserWarning, match=r"saved for 9 steps of 4, not 12 of 4"):
         out = fit(net, cfg, batches, steps=12, batch_size=4, lr=1e-3, seed=2, checkpoint=str(path))
     assert out["resumed_at"] == 0
-
-
-def test_group_batches_pair_frames_within_a_group_only():
-    """Two groups of skins (the authors' sets): each batch's condition and target come from
-    one group, the groups drawn in proportion to their skins; state/restore continues exactly."""
-    from stages.m2m.train import GroupBatches
-    size = 8
-    a = np.full((2, 3, size, size), 0, np.uint8)          # group A: 2 skins, images all 0
-    b = np.full((3, 3, size, size), 255, np.uint8)        # group B: 3 skins, images all 255
-    refs = lambda n, v: np.full((n, size, size), v, np.uint8)
-    batches = GroupBatches([PairBatches(a, refs(2, 0), 0), PairBatches(b, refs(3, 255), 1)], [2, 3], seed=5)
-    kinds = []
-    for _ in range(400):
-        cond, target = batches(4)
-        values = {float(cond[:, 0].mean()), float(target.mean())}
-        assert values in ({-1.0, 0.0}, {1.0}), values     # never a 0-image beside a 255-target
-        kinds.append(float(target.mean()) == 1.0)
-    assert np.mean(kinds) == pytest.approx(3 / 5, abs=0.06)
-    state = batches.state()
-    first = batches(4)
-    batches.restore(state)
-    again = batches(4)
-    for x, y in zip(first, again):
-        np.testing.assert_array_equal(x.numpy(), y.numpy())

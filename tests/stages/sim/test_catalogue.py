@@ -71,11 +71,11 @@ def test_dome_gap_and_touchdown(params):
     edge = np.flatnonzero(np.abs(x) <= 20.0)[-1]
     assert gap[c, edge] == pytest.approx(41.5 - np.sqrt(41.5 ** 2 - x[edge] ** 2))
     assert np.isinf(gap[0, 0])                               # no pad beyond the dome's base
-    flat_punch = make_indenter("cylinder")                  # radius 4 mm, 6 mm off the apex
+    flat_punch = make_indenter("cylinder")                  # radius 3 mm, 6 mm off the apex
     h = contact_height(flat_punch, spec, (6.0, 0.0), gap)
     touch = np.unravel_index(np.argmin(np.where(np.isfinite(h), h, np.inf)), h.shape)
     assert h[touch] == pytest.approx(0.0, abs=1e-12)         # depth counts from first touch
-    assert x[touch[1]] == pytest.approx(6.0 - 4.0, abs=spec["spacing_mm"])   # rim nearest the apex
+    assert x[touch[1]] == pytest.approx(6.0 - 3.0, abs=spec["spacing_mm"])   # rim nearest the apex
     assert touch[0] == c
 
 

@@ -4,8 +4,8 @@ import pytest
 import trimesh
 
 from stages.common import InputError
-from stages.sim.indenters import indenter_set, make_indenter
-from stages.sim.stl import load_stl
+from stages.sim.indenters import INDENTERS, indenter_set, make_indenter
+from stages.sim.stl import compare_footprints, load_stl
 
 
 def _write(path, vertices, faces):
@@ -63,6 +63,32 @@ def test_a_mesh_that_cannot_be_repaired_is_one_line(tmp_path):
     (tmp_path / "junk.stl").write_bytes(b"\x00" * 10)
     with pytest.raises(InputError, match=rf"^indenter mesh {tmp_path}/junk.stl is not a readable STL file"):
         load_stl(tmp_path / "junk.stl")
+
+
+def _authors_style(mesh, path):
+    """`mesh` printed the authors' way: turned tip up on a 16 x 16 x 10 mm mount, tip at z = 20."""
+    up = mesh.copy()
+    up.apply_transform(np.diag([1.0, -1.0, -1.0, 1.0]))             # 180 degrees about x
+    up.apply_translation([0.0, 0.0, 20.0])
+    mount = trimesh.creation.box(bounds=[[-8, -8, 0], [8, 8, 10.5]])  # overlaps the shape's base
+    trimesh.boolean.union([mount, up], engine="manifold").export(str(path))
+    return path
+
+
+def test_stl_footprints_agree_with_the_procedural_shapes(tmp_path):
+    """Generated STLs of the procedural dimensions, on the authors' mount and tip up, load back
+    with the procedural footprints (cells under 0.5/1.0/1.5 mm, 65 x 65 grid of 0.39 mm)."""
+    for name in INDENTERS:
+        _authors_style(make_indenter(name), tmp_path / f"{name}.stl")
+    rows = compare_footprints(tmp_path)
+    assert [r["name"] for r in rows] == list(INDENTERS)
+    assert max(r["max_rel_diff"] for r in rows) <= 0.10, rows
+    assert [r["procedural"] for r in rows if r["name"] == "sphere"] == [[97, 185, 261]]
+    from stages.sim.indenters import _finish, _sphere_on_shank
+    narrow = _finish(_sphere_on_shank(4.0, 2.0, 10.0))                 # a sphere 2 mm narrower
+    _authors_style(narrow, tmp_path / "sphere.stl")
+    (row,) = compare_footprints(tmp_path, names=["sphere"])
+    assert row["max_rel_diff"] > 0.10 and row["stl"][2] < 0.8 * 261
 
 
 def test_indenter_set_takes_the_stl_meshes_it_finds(tmp_path):
