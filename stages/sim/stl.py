@@ -6,7 +6,8 @@ MERGE_MM merged (an STL repeats every vertex once per triangle), duplicate and z
 faces removed, holes of up to MAX_HOLE_EDGES edges closed, faces oriented coherently.  It
 must then be watertight with consistent winding; it is turned outwards (positive volume),
 tip down, and placed as stages.sim.indenters places the procedural shapes: mm, the tip's
-lowest point at z = 0, the x-y bounding box centred on the origin.
+lowest point at z = 0, the x-y bounding box centred on the origin (for the authors' files, the
+centre of their mount, the procedural shapes' frame).
 
 Which end is the tip: `tip` "-z" (the mesh already points down, as ours), "+z" (it points up,
 as the authors' files do: a 16 x 16 x 10 mm mounting block at z 0..10 and the shape above it;
