@@ -40,7 +40,7 @@ PAIRINGS = ("ring", "star", "all")
 SOURCES = ("render", "taxels")
 # what a body is: a sensor on another's body must have these as that body has them
 MECHANICS = ("pad_mm", "thickness_mm", "curvature_radius_mm", "material", "grid", "spacing_mm",
-             "max_depth_mm", "trajectory", "depth_scale")
+             "max_depth_mm", "trajectory", "depth_scale", "shear_scale")
 # the authors' set each force study runs on with data.source authors
 AUTHORS_SETS = {"homo": "homo", "material": "modulus", "hetero": "hetero"}
 _RATIO = re.compile(r"^ratio_(\d+(\.\d+)?)$")

@@ -17,7 +17,7 @@ The additions, in the order they are applied (ADDITIONS):
                 in their calibrations' shear legs (stages.force.compensation.shear_ratio,
                 target over source): the paper's compensation scales shear by the normal
                 force's curves, and a sensor's shear stiffness against its normal stiffness
-                (how deep it presses for the same shear stroke, its friction) is not in them.
+                (how deep it presses for its shear stroke, its friction) is not in them.
                 Without a shear leg in both calibrations the read is left as it is.
   linear_fz     Fz read as the mean of the network's reading and a linear read of how much the
                 frame changes against the reference (stages.force.model.fit_linear_fz, fitted on

@@ -90,6 +90,16 @@ class _Meshes:
         return self.cache[iid]
 
 
+def _scale_shear(t: dict, shear_scale: float) -> None:
+    """A sensor's shear strokes: the trajectory's shifts (and the positions they moved the tip
+    to) times its `shear_scale`, in place."""
+    if shear_scale != 1.0:
+        shift = np.asarray(t["shift"], float)
+        position = np.array(t["position"], float)
+        position[:, :2] += (shear_scale - 1.0) * shift
+        t["shift"], t["position"] = (shift * shear_scale).astype(t["shift"].dtype), position.astype(t["position"].dtype)
+
+
 def _solve_contact_run(rows, t, meshes, spec, gap, kwargs, depth_scale):
     """One contact: height at the touchdown point, then the whole sequence with memory."""
     first = rows[0]
@@ -120,8 +130,9 @@ def deform_sequence(*, indenters: Mapping, sim_trajectory: Mapping, collection_t
     spec: the sensor's catalogue entry; its `trajectory` names the input to follow
     (`sim_trajectory` or `collection_trajectory`, the latter subsampled by
     contacts_per_indenter, val_contacts_per_indenter for the val_indenters (0: as the others)
-    and frame_stride, see select_frames) and its `depth_scale`
-    multiplies that trajectory's depths (TacTip's protocol is the GelSight one x 4.5).
+    and frame_stride, see select_frames); its `depth_scale` multiplies that trajectory's
+    depths and its `shear_scale` the shear strokes (the authors' TacTip protocol is the
+    GelSight one with 4.5x the depths and 1.5x the shear radius).
     """
     from tqdm import tqdm
 
@@ -134,6 +145,7 @@ def deform_sequence(*, indenters: Mapping, sim_trajectory: Mapping, collection_t
     kwargs = solver_kwargs(spec, material)
     scale, max_depth = float(spec["depth_scale"]), float(spec["max_depth_mm"])
     t = _arrays(trajectory, _FRAME_KEYS)
+    _scale_shear(t, float(spec.get("shear_scale", 1.0)))
     if t["depth"].max(initial=0.0) * scale > max_depth * (1 + 1e-9):
         raise ValueError(f"sensor {sensor!r}: the trajectory presses to "
                          f"{t['depth'].max() * scale:.3g} mm, deeper than max_depth_mm {max_depth}")
@@ -167,7 +179,8 @@ def deform_sequence(*, indenters: Mapping, sim_trajectory: Mapping, collection_t
             "on_pad": on_pad, "indenters": names,
             "figures": {"force_trace": _force_trace_png(force, f"{sensor}: force labels")},
             "attrs": {**sensor_attrs(sensor, spec, material), "trajectory": spec["trajectory"],
-                      "depth_scale": scale, "frames": int(frames.size)}}
+                      "depth_scale": scale, "shear_scale": float(spec.get("shear_scale", 1.0)),
+                      "frames": int(frames.size)}}
 
 
 def _force_depth_png(normalised, force, phase, repetition, title) -> np.ndarray:
@@ -192,12 +205,14 @@ def calibrate(*, indenters: Mapping, trajectory: Mapping, sensor: str, spec: Map
 
     The calibration trajectory's normalised depth is pressed to the sensor's max_depth_mm
     (GelSight 1.4 mm, the paper's d_max; TacTip 4.5 mm; uSkin 1 mm, the paper's
-    heterogeneous calibration), so every sensor's curve spans normalised depth 0..1.
+    heterogeneous calibration), so every sensor's curve spans normalised depth 0..1; its shear
+    leg is the sensor's collection stroke (the trajectory's times the sensor's shear_scale).
     Returns depth (N,) mm, normalised_depth (N,), force (N,3) float32, loading (N,) bool,
     repetition (N,) int32, phase (N,) int8, shift (N,2) mm (the shear leg's), and
     figures/force_depth.
     """
     t = _arrays(trajectory, _FRAME_KEYS + ("loading", "normalised_depth"))
+    _scale_shear(t, float(spec.get("shear_scale", 1.0)))
     material = material_of(spec, materials)
     kwargs = solver_kwargs(spec, material)
     max_depth = float(spec["max_depth_mm"])
