@@ -268,7 +268,7 @@ def test_a_worse_model_fails_the_baseline(ci_store):
                  str(ROOT / "baselines" / "ci.yaml"), check=False)
     assert p.returncode == 1
     rows = {line.split()[1]: line for line in p.stdout.splitlines() if line.startswith(("ok", "REGRESSION"))}
-    for name in ("hetero/mean/genforce/mae_fz", "hetero/mean/source_only/r2_fy", "hetero/mean/genforce/mae_total"):
+    for name in ("hetero/mean/genforce/mae_fx", "hetero/mean/source_only/r2_fy", "hetero/mean/genforce/mae_total"):
         assert rows[name].startswith("REGRESSION") and "missing" not in rows[name], rows[name]
     assert rows["segment/tactip/iou"].startswith("ok") and rows["hetero/mean/m2m/fid"].startswith("ok")
 
