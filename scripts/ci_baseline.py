@@ -4,7 +4,7 @@
 
 Runs the ci DAG once per seed (every learned node's seed: M2M's, and the force regressors' seed
 list shifted along; the twin is shared, so it is built once) and once more at seed 0 with the CPU kernels restricted as
-another machine would choose them (`RESTRICTED`: torch's AVX2 kernels and OpenCV's without
+another machine would choose them (`RESTRICTED`: torch's and oneDNN's AVX2 kernels and OpenCV's without
 AVX2/AVX-512, in a store of its own, so that every node is recomputed).  Each metric's baseline
 is the value the ci DAG gives at its own seeds (what CI computes), and its `spread` the
 standard deviation over all those runs; `pipeline metrics --baseline` allows a metric to be
@@ -30,8 +30,10 @@ import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED_KEYS = ("m2m.pretrain.seed", "m2m.finetune.seed")   # and force.seeds, shifted (seed_overrides)
-# the kernel choices of a CPU without AVX-512 (torch) and without AVX2 (OpenCV's dispatch)
-RESTRICTED = {"ATEN_CPU_CAPABILITY": "avx2", "OPENCV_CPU_DISABLE": "AVX512-SKX,AVX2"}
+# the kernel choices of a CPU without AVX-512 (torch's own kernels and oneDNN's, whose
+# convolutions compute the InceptionV3 features and the networks) and without AVX2 (OpenCV's)
+RESTRICTED = {"ATEN_CPU_CAPABILITY": "avx2", "DNNL_MAX_CPU_ISA": "AVX2",
+              "OPENCV_CPU_DISABLE": "AVX512-SKX,AVX2"}
 HEADER = """\
 # Metric regression baseline of the ci profile (tiny sizes, a few training steps), written by
 # `make baseline` (scripts/ci_baseline.py): each metric as the ci DAG gives it, and in `spread`

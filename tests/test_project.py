@@ -43,6 +43,31 @@ def test_the_readme_is_a_manual_that_opens_with_the_two_commands():
         assert (ROOT / image).is_file(), image
 
 
+def test_every_installed_package_is_pinned_by_the_constraints():
+    """Before: pyproject's loose ranges let a fresh machine install newer packages than the
+    baseline was made with, and the ci metrics moved.  setup.sh installs under
+    constraints.txt, which pins every dependency, and this venv holds exactly those versions."""
+    import re
+    import tomllib
+    from importlib.metadata import distributions
+
+    def norm(name):
+        return re.sub(r"[-_.]+", "-", name).lower()
+    setup = (ROOT / "scripts" / "setup.sh").read_text()
+    assert setup.count("-c constraints.txt") == 3
+    pins = {}
+    for line in (ROOT / "constraints.txt").read_text().splitlines():
+        if line and not line.startswith("#"):
+            name, _, version = line.partition("==")
+            pins[norm(name)] = version
+    deps = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    wanted = deps["dependencies"] + deps["optional-dependencies"]["dev"]
+    names = {norm(re.split(r"[<>=\[ ]", d, 1)[0]) for d in wanted}
+    assert names - {"torch"} <= set(pins), sorted(names - {"torch"} - set(pins))
+    installed = {norm(d.metadata["Name"]): d.version for d in distributions()}
+    assert {n: (v, installed.get(n)) for n, v in pins.items() if installed.get(n) != v} == {}
+
+
 @pytest.mark.parametrize("profile", ["default", "ci", "paper", "allpairs", "seeds"])
 def test_profiles_load(profile):
     project = find_project(ROOT)
@@ -333,7 +358,7 @@ TWIN = ("indenters", "sim_trajectory", "collection_trajectory", "calibration_tra
 def test_the_twin_has_the_same_digests_with_the_cpu_features_restricted(ci_store, tmp_path):
     """Before: another machine rendered other marker images (segment IoU, every `before` FID
     differed), as numpy, OpenCV and Dr.Jit chose their kernels by the CPU.  Built again here
-    with torch's AVX2 kernels and OpenCV's without AVX2/AVX-512 (another machine's choices),
+    with torch's and oneDNN's AVX2 kernels and OpenCV's without AVX2/AVX-512 (another machine's choices),
     every twin node has the native run's content digest."""
     sys.path.insert(0, str(ROOT / "scripts"))
     from ci_baseline import RESTRICTED
