@@ -358,8 +358,8 @@ TWIN = ("indenters", "sim_trajectory", "collection_trajectory", "calibration_tra
 def test_the_twin_has_the_same_digests_with_the_cpu_features_restricted(ci_store, tmp_path):
     """Before: another machine rendered other marker images (segment IoU, every `before` FID
     differed), as numpy, OpenCV and Dr.Jit chose their kernels by the CPU.  Built again here
-    with torch's and oneDNN's AVX2 kernels and OpenCV's without AVX2/AVX-512 (another machine's choices),
-    every twin node has the native run's content digest."""
+    with torch's and oneDNN's AVX2 kernels and OpenCV's without AVX2/AVX-512 (another
+    machine's choices), every twin node has the native run's content digest."""
     sys.path.insert(0, str(ROOT / "scripts"))
     from ci_baseline import RESTRICTED
     store, _ = ci_store
