@@ -293,8 +293,15 @@ def test_a_worse_model_fails_the_baseline(ci_store):
                  str(ROOT / "baselines" / "ci.yaml"), check=False)
     assert p.returncode == 1
     rows = {line.split()[1]: line for line in p.stdout.splitlines() if line.startswith(("ok", "REGRESSION"))}
-    for name in ("hetero/mean/genforce/mae_fx", "hetero/mean/source_only/r2_fy", "hetero/mean/genforce/mae_total"):
-        assert rows[name].startswith("REGRESSION") and "missing" not in rows[name], rows[name]
+    failed = {name for name, line in rows.items() if line.startswith("REGRESSION")}
+    studies = {name for name in rows if name.split("/")[0].removesuffix("_val") in ("homo", "material", "hetero")}
+    # the ci profile's models train 20 steps, so a mean over pairs moves by about its seed
+    # spread; the per-pair metrics of every force study regress by the hundred
+    assert len(failed & studies) >= len(studies) // 10, len(failed & studies)
+    for study in ("homo", "material", "hetero"):
+        assert any(name.startswith(f"{study}_val/") for name in failed), study
+    assert failed <= studies | {name for name in rows if name.startswith("control/")}, failed - studies
+    assert not any("missing" in rows[name] for name in failed)
     assert rows["segment/tactip/iou"].startswith("ok") and rows["hetero/mean/m2m/fid"].startswith("ok")
 
 
