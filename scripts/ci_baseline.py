@@ -3,9 +3,10 @@
     python scripts/ci_baseline.py [--seeds 5] [--k 8] [--store artifacts-ci] [--out baselines/ci.yaml]
 
 Runs the ci DAG once per seed (every learned node's seed: M2M's, and the force regressors' seed
-list shifted along; the twin is shared, so it is built once) and once more at seed 0 with the CPU kernels restricted as
-another machine would choose them (`RESTRICTED`: torch's and oneDNN's AVX2 kernels and OpenCV's without
-AVX2/AVX-512, in a store of its own, so that every node is recomputed).  Each metric's baseline
+list shifted along; the twin is shared, so it is built once) and once more at seed 0 with the
+CPU kernels restricted as another machine would choose them (`RESTRICTED`: torch's and
+oneDNN's AVX2 kernels and OpenCV's without AVX2/AVX-512, in a store of its own, so that every
+node is recomputed).  Each metric's baseline
 is the value the ci DAG gives at its own seeds (what CI computes), and its `spread` the
 standard deviation over all those runs; `pipeline metrics --baseline` allows a metric to be
 worse by k standard deviations.  Another machine's kernels move a learned metric by a
