@@ -41,8 +41,10 @@ def select_frames(trajectory: Mapping, contacts_per_indenter: int = 0, frame_str
     """Indices of the trajectory frames a twin simulates.
 
     contacts_per_indenter > 0 keeps that many contacts per indenter, evenly spread over the
-    indenter's contacts (the collection protocol orders them by surface point, then depth
-    level, so the pick covers points and levels alike); 0 keeps all.  contacts_of (indenter
+    indenter's contacts in the collection protocol's order (by surface point, then depth
+    level): with fewer contacts than points x levels, the picks' levels follow from that
+    spacing (2 of 5 points x 4 levels: the second and fourth level, at the second and
+    fourth point); 0 keeps all.  contacts_of (indenter
     name -> count) gives some indenters another count (the validation indenters more, so
     that the choices made on them rest on more contacts).  frame_stride > 1 keeps
     every stride-th sample of each movement counted back from its end, so every movement's

@@ -302,7 +302,8 @@ def test_metrics_match_sklearn_and_hand_values():
     true = np.array([[0.0, 1.0, -1.0], [1.0, 1.0, -2.0], [2.0, 1.0, -3.0], [3.0, 1.0, -6.0]])
     pred = np.array([[0.5, 1.0, -1.0], [1.0, 1.5, -2.0], [2.0, 1.0, -4.0], [2.5, 1.0, -6.0]])
     m = force_metrics(pred, true)
-    assert list(m) == list(METRICS)
+    assert list(m) == [*METRICS, "mae_fz_light"]
+    assert m["mae_fz_light"] == 0.0                            # light: the 1 N and 2 N frames
     assert m["mae_fx"] == pytest.approx(0.25) and m["mae_fy"] == pytest.approx(0.125)
     assert m["mae_fz"] == pytest.approx(0.25) and m["mae_total"] == pytest.approx(0.625 / 3)
     assert m["r2_fx"] == pytest.approx(1 - 0.5 / 5.0)          # SSres 0.5, SStot 5
@@ -313,6 +314,11 @@ def test_metrics_match_sklearn_and_hand_values():
         assert m[f"r2_{axis}"] == pytest.approx(r2_score(true[:, k], pred[:, k]))
     with pytest.raises(ValueError, match=r"\(N,3\)"):
         force_metrics(pred[:, :2], true[:, :2])
+    # the light band (0.05, 2] N of true normal force: 0.04 N and 2.5 N frames are outside it
+    true[:, 2], pred[:, 2] = [-0.04, -0.8, -2.0, -2.5], [-3.0, -1.1, -1.5, -9.0]
+    assert force_metrics(pred, true)["mae_fz_light"] == pytest.approx((0.3 + 0.5) / 2)
+    true[:, 2] = [-0.04, -0.8, -2.5, -3.0]                     # one light frame: no light MAE
+    assert "mae_fz_light" not in force_metrics(pred, true)
 
 
 # ---------------------------------------------------------------------------- nodes
