@@ -462,13 +462,20 @@ def test_force_study_scores_every_method_on_validation_and_test(nodes_out, skins
                                    ("genforce_plus", stiffer, "genforce_plus")):
             pred = predict_contacts(load_model(art, group), skins["A"]["images"][rows],
                                     skins["A"]["contact_id"][rows], skins["A"]["reference"])
+            true = skins["A"]["force"][rows]
             assert m[f"{prefix}/B_A/{method}/mae_total"] == pytest.approx(
-                force_metrics(pred, skins["A"]["force"][rows])["mae_total"], rel=1e-6)
+                force_metrics(pred, true)["mae_total"], rel=1e-6)
+            light = (-true[:, 2] > 0.05) & (-true[:, 2] <= 2.0)             # the light band, by hand
+            assert light.sum() >= 2
+            assert m[f"{prefix}/B_A/{method}/mae_fz_light"] == pytest.approx(
+                np.abs(pred[light, 2] - true[light, 2]).mean(), rel=1e-6)
         for k in METRICS:
             assert m[f"{prefix}/mean/genforce/{k}"] == pytest.approx(
                 np.mean([m[f"{prefix}/A_B/genforce/{k}"], m[f"{prefix}/B_A/genforce/{k}"]]))
     assert set(METHODS) == {"source_only", "genforce", "genforce_comp", "genforce_plus", "oracle"}
-    assert len(m) == 2 * (2 + 1) * len(METHODS) * len(METRICS)          # one seed: no spread
+    # one seed: no spread; every split of this stub has light contacts, so each gets mae_fz_light
+    assert len(m) == 2 * (2 + 1) * len(METHODS) * (len(METRICS) + 1)
+    assert {k.rsplit("/", 1)[1] for k in m} == set(METRICS) | {"mae_fz_light"}
     assert out["attrs"]["seeds"] == [3]
     assert out["mae"]["genforce_plus"].shape == (2, 4) and out["r2"]["oracle"].shape == (2, 3)
     assert out["attrs"]["val_frames"] == {"B": 42, "A": 42} and out["attrs"]["test_frames"]["A"] == 42
