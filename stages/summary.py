@@ -88,7 +88,9 @@ def force_table(m: Mapping[str, float], study: str, title: str) -> dict:
     paper = PAPER.get(study, {})
     rows = []
     for label, metric, key in (("MAE Fz (N)", "mae_fz", "mae_fz"), ("MAE Fx (N)", "mae_fx", "mae_shear"),
-                               ("MAE Fy (N)", "mae_fy", None), ("R2 Fx", "r2_fx", "r2"), ("R2 Fy", "r2_fy", None),
+                               ("MAE Fy (N)", "mae_fy", None),
+                               ("MAE Fz at light contact, 0.05-2 N (N)", "mae_fz_light", None),
+                               ("R2 Fx", "r2_fx", "r2"), ("R2 Fy", "r2_fy", None),
                                ("R2 Fz", "r2_fz", None)):
         rows.append([f"{label}, mean of {len(pairs)} pairs", paper.get(key, "") if key else "",
                      *(_with_sd(m, study, "mean", meth, metric) for meth in METHODS)])

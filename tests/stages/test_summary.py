@@ -12,6 +12,7 @@ def _metrics():
             m[f"homo/{pair}/{method}/mae_total_sd"] = sd
     m["homo/mean/genforce/mae_fz"], m["homo/mean/genforce/mae_fz_sd"] = 1.234, 0.0567
     m["homo/mean/oracle/mae_fz"] = 0.5                                  # no spread: the value alone
+    m["homo/mean/oracle/mae_fz_light"], m["homo/mean/oracle/mae_fz_light_sd"] = 0.4321, 0.0123
     for pair, r2, sd in (("a_b", 0.3, 0.1), ("b_a", 0.05, 0.1)):       # b_a: above 0 by less than its sd
         for a in ("fx", "fy", "fz"):
             m[f"hetero/{pair}/genforce_comp/r2_{a}"], m[f"hetero/{pair}/genforce_comp/r2_{a}_sd"] = r2, sd
@@ -26,6 +27,8 @@ def test_cells_are_mean_plus_minus_sd_and_counts_are_beyond_the_spread():
     fz = t["rows"][0]
     assert fz[0] == "MAE Fz (N), mean of 2 pairs"
     assert fz[2 + 1] == "1.23 ± 0.057" and fz[2 + 4] == "0.5"        # genforce, oracle columns
+    light = next(r for r in t["rows"] if r[0] == "MAE Fz at light contact, 0.05-2 N (N), mean of 2 pairs")
+    assert light[2 + 4] == "0.432 ± 0.012" and light[2 + 1] == "-"    # genforce has none here
     beats = next(r for r in t["rows"] if r[0] == "pairs where the method beats source-only (MAE)")
     assert beats[2 + 1] == "1/2"                                      # genforce: a_b only
 
