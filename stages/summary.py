@@ -157,6 +157,15 @@ def ablation_table(m: Mapping[str, float]) -> dict | None:
                                                              for s in studies)])
     for meth in ("genforce_comp", "genforce_plus"):
         rows.append([f"{meth} MAE (mean over seeds)", *(_fmt(m.get(f"ablation/{s}/{meth}/mae_total")) for s in studies)])
+    if any(k.endswith("/delta_mae_fz_light") for k in m if k.startswith("ablation/")):
+        for a in additions:
+            rows.append([f"{a}: light-contact Fz MAE (0.05-2 N)",
+                         *(_fmt(m.get(f"ablation/{s}/{a}/delta_mae_fz_light")) for s in studies)])
+        rows.append(["seed spread of the light-contact Fz MAE",
+                     *(_fmt(m.get(f"ablation/{s}/seed_spread/mae_fz_light")) for s in studies)])
+        for meth in ("genforce_comp", "genforce_plus"):
+            rows.append([f"{meth} light-contact Fz MAE (mean over seeds)",
+                         *(_fmt(m.get(f"ablation/{s}/{meth}/mae_fz_light")) for s in studies)])
     return {"title": "Ablation on the validation indenters: MAE without the addition minus with it (N)",
             "header": ["addition", *studies], "rows": rows}
 

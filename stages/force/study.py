@@ -205,6 +205,9 @@ def ablation_study(*, homo: Mapping, material: Mapping, hetero: Mapping, transfe
       ablation/<study>/genforce_plus/mae_total      mean over s of m(s, all)
       ablation/<study>/genforce_comp/mae_total      mean over s of m(s, no addition)
 
+and the same four of `mae_fz_light` (the normal MAE at light contact, the grasps' range) in
+place of mae_total, where every target's validation set has light contacts.
+
     An addition whose delta does not beat the seed spread has not earned its place."""
     from stages.common import torch_threads
     from stages.force import plus
@@ -224,16 +227,20 @@ def ablation_variants(additions: Sequence[str]) -> dict[str, list[str]]:
             **{f"-{a}": [b for b in additions if b != a] for a in additions}}
 
 
-def ablation_metrics(study: str, scores: Mapping[str, np.ndarray], additions: Sequence[str]) -> dict:
-    """The ablation's metrics from `scores`: variant -> (seeds, pairs) validation MAE totals."""
+def ablation_metrics(study: str, scores: Mapping[str, np.ndarray], additions: Sequence[str],
+                     metric: str = "mae_total") -> dict:
+    """The ablation's metrics from `scores`: variant -> (seeds, pairs) validation `metric`
+    (mae_total, or mae_fz_light); none where a pair's validation set lacks it (NaN)."""
     m = {v: np.asarray(s, float).mean(axis=1) for v, s in scores.items()}     # per seed
     if len(m["all"]) < 3:
         raise ValueError(f"ablation[{study}]: {len(m['all'])} seeds; the seed spread needs 3 or more")
-    out = {f"ablation/{study}/seed_spread/mae_total": float(np.std(m["all"], ddof=1)),
-           f"ablation/{study}/genforce_plus/mae_total": float(np.mean(m["all"])),
-           f"ablation/{study}/genforce_comp/mae_total": float(np.mean(m["none"]))}
+    if not all(np.isfinite(x).all() for x in m.values()):
+        return {}
+    out = {f"ablation/{study}/seed_spread/{metric}": float(np.std(m["all"], ddof=1)),
+           f"ablation/{study}/genforce_plus/{metric}": float(np.mean(m["all"])),
+           f"ablation/{study}/genforce_comp/{metric}": float(np.mean(m["none"]))}
     for a in additions:
-        out[f"ablation/{study}/{a}/delta_mae_total"] = float(np.mean(m[f"-{a}"] - m["all"]))
+        out[f"ablation/{study}/{a}/delta_{metric}"] = float(np.mean(m[f"-{a}"] - m["all"]))
     return out
 
 
@@ -248,6 +255,7 @@ def _ablation(studies, transfer, translated, markers, val_indenters, train_inden
     for study, study_pairs in studies.items():
         study_pairs = [(str(s), str(t)) for s, t in study_pairs]
         scores: dict[str, list] = {v: [] for v in variants}        # variant -> per pair: per seed
+        light: dict[str, list] = {v: [] for v in variants}         # the same, of mae_fz_light
         for s, t in study_pairs:
             key = f"source={s},target={t}"
             if key not in translated:
@@ -270,15 +278,21 @@ def _ablation(studies, transfer, translated, markers, val_indenters, train_inden
                 raise ValueError(f"ablation[{study}]: {s} -> {t} has {len(models)} seed models, the "
                                  f"study's other pairs {len(scores['all'][0])}")
             per_variant = {v: [] for v in variants}
+            per_light = {v: [] for v in variants}
             for model in models:
                 for v, used in variants.items():
                     built, _ = plus.apply(model, paired, used)
                     pred = predict_contacts(built, val["images"], val["contact_id"], val["reference"])
-                    per_variant[v].append(force_metrics(pred, val["force"])["mae_total"])
+                    scored = force_metrics(pred, val["force"])
+                    per_variant[v].append(scored["mae_total"])
+                    per_light[v].append(scored.get("mae_fz_light", np.nan))
             for v in variants:
                 scores[v].append(per_variant[v])
+                light[v].append(per_light[v])
         table = {v: np.asarray(scores[v], float).T for v in variants}   # (seeds, pairs)
         metrics.update(ablation_metrics(study, table, additions))
+        metrics.update(ablation_metrics(study, {v: np.asarray(light[v], float).T for v in variants},
+                                        additions, "mae_fz_light"))
         per_study[study] = table
     from stages.force.figures import ablation_png
     from stages.summary import ablation_table, markdown

@@ -552,6 +552,13 @@ def test_ablation_arithmetic_on_a_stub_study():
     assert m["ablation/s/genforce_comp/mae_total"] == pytest.approx(3.0)
     with pytest.raises(ValueError, match="2 seeds; the seed spread needs 3 or more"):
         ablation_metrics("s", {k: v[:2] for k, v in scores.items()}, adds)
+    light = ablation_metrics("s", scores, adds, "mae_fz_light")          # the same arithmetic, renamed
+    assert light["ablation/s/linear_fz/delta_mae_fz_light"] == pytest.approx(-1 / 6)
+    assert light["ablation/s/seed_spread/mae_fz_light"] == pytest.approx(np.std([2.0, 2.0, 2.5], ddof=1))
+    assert not any("mae_total" in k for k in light)
+    # a pair whose validation set has no light contact (NaN): no light figures for the study
+    assert ablation_metrics("s", {**scores, "all": [[1.0, np.nan], [2.0, 2.0], [1.5, 3.5]]}, adds,
+                            "mae_fz_light") == {}
 
 
 # ---------------------------------------------------------------------------- checkpoints
