@@ -13,7 +13,12 @@ one-step generator and the multi-step sampler (model.sample).  The x0 loss
 replaces the paper's 5*MSE + LPIPS + 0.5*GAN: binary cross-entropy on the marker logits
 (the pixel term, exact for binary targets) plus a soft Dice term on marker probability (the
 shape term: it weighs the ~10% of marker pixels as much as the background, which LPIPS did
-for the paper's thin dots).
+for the paper's thin dots).  The fine-tune weighs the BCE of the pixels a deformation changed
+(change_share, stages.m2m.fit.CHANGE_SHARE): without it a copy of the target reference is
+almost free at light contact, where a GelSight contact changes about 1% of the image, and
+M2M draws small marker motion too small, which the force model then reads as too little
+force.  The weight is set per target skin from the mean share of its pixels the deformation
+changes (a 3-axis uSkin contact changes about 12% of its image and is left unweighted).
 No adversarial term: outputs are thresholded to binary images, so the blur a GAN fights
 does not reach the artifacts.
 """
@@ -37,7 +42,10 @@ WARMUP = 0.03              # share of the steps with a linear learning-rate warm
 
 class PairBatches:
     """Random (condition, target) batches from paired images (S,K,H,W) and references (S,H,W):
-    the target skin and the frame evenly, the source any other skin, evenly."""
+    the target skin and the frame evenly, the source any other skin, evenly.
+    `changed_fraction` (S,): per skin, the mean share of pixels whose binary value differs
+    from its reference; `last_b`: the target skins of the last batch drawn (fit's change_share
+    reads the two)."""
 
     def __init__(self, images: np.ndarray, references: np.ndarray, seed: int):
         if images.ndim != 4 or references.shape != (images.shape[0], *images.shape[2:]):
@@ -46,6 +54,9 @@ class PairBatches:
         self.images, self.refs = images, references
         self.rng = np.random.default_rng(seed)
         self.square = images.shape[2] == images.shape[3]
+        self.changed_fraction = np.array([float(((im > 127) != (ref > 127)[None]).mean())
+                                          for im, ref in zip(images, references)], np.float32)
+        self.last_b = None
 
     def __call__(self, batch: int) -> tuple[torch.Tensor, torch.Tensor]:
         """(condition (B,3,H,W) in [-1,1], binary target (B,1,H,W))."""
@@ -54,6 +65,7 @@ class PairBatches:
         a = self.rng.integers(0, s, batch)
         # b != a whenever there are two skins to choose from
         b = (a + self.rng.integers(1, s, batch)) % s if s > 1 else a
+        self.last_b = b
         stack = np.stack([self.images[a, f], self.refs[a], self.refs[b], self.images[b, f]], 1)
         stack = np.stack([self._symmetry(x, int(g)) for x, g in
                           zip(stack, self.rng.integers(0, 8 if self.square else 4, batch))])
@@ -79,9 +91,27 @@ class PairBatches:
         return np.ascontiguousarray(x)
 
 
-def loss_fn(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """BCE on logits + DICE_WEIGHT * (1 - soft Dice) of the marker probability."""
-    bce = F.binary_cross_entropy_with_logits(logits, target)
+def loss_fn(logits: torch.Tensor, target: torch.Tensor, reference=None, change_share: float = 0.0,
+            changed_fraction=None) -> torch.Tensor:
+    """BCE on logits + DICE_WEIGHT * (1 - soft Dice) of the marker probability.
+
+    With a target `reference` (binary, like target) and change_share s > 0, the BCE of every
+    pixel the deformation changed (target != reference) weighs w = max(1, s/(1-s) * (1-c)/c),
+    c = `changed_fraction` (B,): the target skin's mean changed share of pixels (at least one
+    pixel's).  At its mean contact a skin's changed pixels then carry the share s of the BCE:
+    one whose contacts change 1% of the image gets w ~ 11 at s = 0.1, one whose taxel dots
+    change 12% of it w = 1.  Each example's BCE is the w-weighted mean of its pixels; the
+    batch's the mean of those."""
+    if reference is None or change_share == 0:
+        bce = F.binary_cross_entropy_with_logits(logits, target)
+    else:
+        changed = (target - reference).abs()
+        n = changed[0].numel()
+        frac = changed_fraction.to(changed).reshape(-1, 1, 1, 1).clamp(min=1.0 / n)
+        share = change_share / (1 - change_share) * (1 - frac) / frac
+        w = 1.0 + (share.clamp(min=1.0) - 1.0) * changed
+        per_pixel = F.binary_cross_entropy_with_logits(logits, target, reduction="none")
+        bce = ((per_pixel * w).sum((1, 2, 3)) / w.sum((1, 2, 3))).mean()
     prob = torch.sigmoid(logits)
     inter = (prob * target).sum((1, 2, 3))
     dice = (2 * inter + 1) / (prob.sum((1, 2, 3)) + target.sum((1, 2, 3)) + 1)
@@ -119,10 +149,12 @@ def noisy_input(target: torch.Tensor, config, gen: torch.Generator) -> tuple[tor
 
 
 def fit(net: M2MNet, config, batches: Callable, *, steps: int, batch_size: int, lr: float,
-        seed: int, progress: str = "m2m",
+        seed: int, progress: str = "m2m", change_share: float = 0.0,
         checkpoint: str | None = None, checkpoint_every_s: float = CHECKPOINT_EVERY_S) -> dict:
     """AdamW with warm-up and cosine decay; `batches(b)` gives (condition, target) as
-    PairBatches does.
+    PairBatches does.  change_share > 0: the loss weighs the changed pixels (loss_fn; the
+    target reference is the condition's third channel, the target skin's changed fraction
+    PairBatches' changed_fraction of its last_b).
 
     `checkpoint`: a file where the whole training state (weights, optimiser, schedule, step,
     losses and every random stream, `batches.state()` included) is saved at the end of a step
@@ -167,7 +199,11 @@ def fit(net: M2MNet, config, batches: Callable, *, steps: int, batch_size: int, 
         cond, target = batches(batch_size)
         x_t, t = noisy_input(target, config, gen)
         cond, target, x_t, t = cond.to(dev), target.to(dev), x_t.to(dev), t.to(dev)
-        loss = loss_fn(net(x_t, cond, t), target)
+        if change_share:
+            frac = torch.from_numpy(batches.changed_fraction[batches.last_b])
+            loss = loss_fn(net(x_t, cond, t), target, (cond[:, 2:3] > 0).float(), change_share, frac)
+        else:
+            loss = loss_fn(net(x_t, cond, t), target)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

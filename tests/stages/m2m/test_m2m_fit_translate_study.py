@@ -151,6 +151,23 @@ def test_translation_streams_labels_and_matches_flow_warp_layout(skins, trained,
     assert out["attrs"]["method"] == "flow_warp"
 
 
+def test_the_finetune_weighs_changed_pixels_and_the_pretrain_does_not(skins, trained, monkeypatch):
+    from stages.m2m import train
+    shares = []
+
+    def spy(*args, change_share=0.0, **kw):
+        shares.append(change_share)
+        raise RuntimeError("stop")
+    monkeypatch.setattr(train, "fit", spy)
+    with pytest.raises(RuntimeError, match="stop"):
+        fit.finetune(base=trained, markers=skins, skins=["Array3", "Circle3"], train_indenters=["sphere"],
+                     pairs_per_skin=3, steps=5, batch_size=4, lr=1e-4, seed=1)
+    with pytest.raises(RuntimeError, match="stop"):
+        fit.pretrain(markers=skins, skins=list(SKINS), train_indenters=["sphere"], size=(64, 64),
+                     steps=5, batch_size=4, lr=1e-3, seed=0, width=8, timesteps=100)
+    assert shares == [fit.CHANGE_SHARE, 0.0] and fit.CHANGE_SHARE == 0.1
+
+
 def test_finetune_starts_from_the_base_and_uses_few_pairs(skins, trained):
     two = ["Array3", "Circle3"]
     tuned = fit.finetune(base=trained, markers=skins, skins=two, train_indenters=["sphere"],

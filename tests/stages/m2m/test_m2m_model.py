@@ -139,6 +139,64 @@ def test_loss_is_the_mean_bce_plus_the_soft_dice_term():
     assert float(loss_fn(copy, ref)) < 1e-6
 
 
+def test_change_share_gives_a_skins_changed_pixels_their_share():
+    """Two examples of one skin whose mean contact changes 18 of 128 pixels, 2 and 16 of 64
+    changed, a confident copy of the reference: at s = 0.5 both examples' changed pixels weigh
+    w = (1 - 18/128) / (18/128) ~ 6.1 (the skin's, not each example's own); a skin that never
+    changes gets one changed pixel's weight, not a division by 0; s = 0 is the plain loss."""
+    ref, target, copy, wrong, dice = light_and_heavy()
+    c = torch.full((2,), 18 / 128)
+    w = (1 - 18 / 128) / (18 / 128)
+    expect = (w * 2 * wrong / (62 + 2 * w) + w * 16 * wrong / (48 + 16 * w)) / 2 + dice
+    assert float(loss_fn(copy, target, ref, 0.5, c)) == pytest.approx(expect, rel=1e-3)
+    assert float(loss_fn(copy, target, ref, 0.5, c)) > 2 * float(loss_fn(copy, target))   # the copy pays more
+    # s = 0.1 on a skin that changes 12% of its pixels: w = max(1, 0.81) = 1, the plain BCE
+    assert float(loss_fn(copy, target, ref, 0.1, torch.full((2,), 0.12))) == pytest.approx(
+        float(loss_fn(copy, target)), rel=1e-6)
+    assert float(loss_fn(copy, target, ref, 0.0, c)) == float(loss_fn(copy, target))
+    zero = float(loss_fn(copy, ref, ref, 0.5, torch.zeros(2)))
+    assert np.isfinite(zero) and zero == pytest.approx(float(loss_fn(copy, ref)), rel=1e-6)
+
+
+def test_pair_batches_know_each_skins_changed_fraction_and_the_last_targets():
+    """Skin 0's frames change 2 and 16 of 64 pixels (mean 18/128), skin 1's none; last_b names
+    each example's target skin: skin 1's targets are its 4-pixel reference, skin 0's have 6 or 20."""
+    ref = np.zeros((8, 8), np.uint8)
+    ref[2:4, 2:4] = 255
+    light, heavy = ref.copy(), ref.copy()
+    light[2:4, 4] = 255
+    heavy[4:6, 0:8] = 255
+    batches = PairBatches(np.stack([np.stack([light, heavy]), np.stack([ref, ref])]), np.stack([ref, ref]), seed=0)
+    np.testing.assert_allclose(batches.changed_fraction, [18 / 128, 0.0])
+    _, target = batches(64)
+    from_skin1 = (target.sum((1, 2, 3)) == 4).numpy()
+    assert 0 < from_skin1.sum() < 64
+    np.testing.assert_array_equal(batches.last_b, from_skin1.astype(int))
+
+
+def test_fit_weighs_changed_pixels_only_when_given_a_change_share(monkeypatch):
+    """With a change share, fit hands loss_fn the target reference (the condition's third
+    channel), the share and the target skins' changed fractions; without, the plain loss."""
+    from stages.m2m import fit as m2m_fit
+    from stages.m2m import train
+    seen = []
+    real = train.loss_fn
+
+    def spy(logits, target, *args):
+        seen.append(args)
+        return real(logits, target, *args)
+    monkeypatch.setattr(train, "loss_fn", spy)
+    cfg, net, batches = _fit_setup()
+    train.fit(net, cfg, batches, steps=2, batch_size=4, lr=1e-3, seed=0, change_share=m2m_fit.CHANGE_SHARE)
+    assert len(seen) == 2 and all(a[1] == 0.1 for a in seen)
+    ref, frac = seen[-1][0], seen[-1][2]
+    assert set(torch.unique(ref).tolist()) <= {0.0, 1.0} and ref.shape == (4, 1, *batches.images.shape[2:])
+    np.testing.assert_allclose(frac.numpy(), batches.changed_fraction[batches.last_b])
+    seen.clear()
+    train.fit(net, cfg, batches, steps=1, batch_size=4, lr=1e-3, seed=0)
+    assert seen == [()]
+
+
 def test_pair_batches_draw_targets_evenly_and_never_the_source():
     """Skin i's reference marks line i, so the reference channels of a batch tell which skin was
     the source (channel 1) and which the target (channel 2); 4000 draws land within 2% of even."""
