@@ -19,7 +19,7 @@ default-profile size.  Columns are torch thread counts.  Rows:
                       regressor, as source_only, genforce and genforce_comp read
   x 40 Hz             how many times faster than a 40 Hz sensor (25 ms per frame) streaming is
   plus ms/frame       the same model as genforce_plus reads it: the mirror read (the frame and
-                      its three mirror images in one batch) and the linear Fz read
+                      its three mirror images in one batch)
   plus x 40 Hz        the same against a 40 Hz sensor
   cpu/wall            process CPU time over wall time while training: about the thread count
                       on an idle machine, lower when other processes share the cores
@@ -137,9 +137,8 @@ def bench(threads, config, steps, contacts=30, length=50):
         t = time.perf_counter()
         predict_contacts(model, images, cid)
         predict_fps = len(images) / (time.perf_counter() - t)
-        # genforce_plus: the mirror read and the linear Fz read on the same weights
+        # genforce_plus: the mirror read on the same weights
         plus = from_arrays(to_arrays(model), {**model.config, "mirror_read": "auto"})
-        plus.set_linear_fz([-30.0, -5.0, 10.0, 2.0], 0.5, 0.5)
         ms = step_ms(StreamingPredictor(model), images[:200])
         ms_plus = step_ms(StreamingPredictor(plus, ref), images[:200])
     return plus.mirrors_for(ref), {"train samples/s": hist["samples_per_s"], "train frames/s": hist["frames_per_s"],

@@ -198,8 +198,7 @@ GRAPH.node("transfer", "stages.force.fit:fit_transfer",
                    "source_calibration": "{cal[{source}]}", "target_calibration": "{cal[{target}]}",
                    "target_markers": "{seq[{target}]}",
                    "captured_calibrations": "capture_calibration[*]"},
-           params={**_FIT, "additions": "plus.additions",
-                   "pairs": "m2m.finetune.pairs_per_skin", **_SEQ,
+           params={**_FIT, "additions": "plus.additions", **_SEQ,
                    "cal": Wiring("stages.catalogue:calibrations", _CAT)},
            grid={"source,target": _TRANSFER_PAIRS, "seed": "force.seeds"},
            description="GenForce: regressors on translated images with source labels, raw (genforce), "
@@ -222,12 +221,10 @@ for _study, _what in (("homo", "study homo (paper Fig. 4): the five GelSight twi
 
 # -- the ablation of genforce_plus: run only when named (`pipeline run ablation`) -------------
 GRAPH.node("ablation", "stages.force.study:ablation_study",
-           inputs={"transfer": "transfer[*]", "translated": "translate[*]",
-                   "markers": "{seqs[node]}[*]"},
+           inputs={"transfer": "transfer[*]", "markers": "{seqs[node]}[*]"},
            params={"homo": _cat("groups", study="homo"), "material": _cat("groups", study="material"),
                    "hetero": _cat("groups", study="hetero"),
                    "val_indenters": "splits.val_indenters",
-                   "train_indenters": "splits.train_indenters", "pairs": "m2m.finetune.pairs_per_skin",
                    "additions": "plus.additions", **_SEQS},
            on_demand=True,
            description="what each addition of genforce_plus earns on the validation indenters, "

@@ -68,20 +68,6 @@ def scoring_set(art, indenters: Sequence[str], what: str = "scoring") -> dict:
             "reference": np.asarray(art["reference"])}
 
 
-def paired_rows(translated: Mapping, target_markers: Mapping, indenters: Sequence[str] | None,
-                pairs: int) -> tuple[np.ndarray, np.ndarray]:
-    """The location-paired frames of the translations and the target's own collection, as
-    M2M's fine-tune pairs them: `pairs` of them (0: all) among the contacts of `indenters`
-    (None: every indenter of the translations).  Returns (frames, rows (2,K): translated,
-    target).  Only images and frame numbers are read: no label."""
-    from stages.m2m.data import indenter_names as indenters_of
-    from stages.m2m.data import paired_table
-    if indenters is None:
-        indenters = indenters_of(translated)
-    return paired_table({"translated": translated, "target": target_markers},
-                        ["translated", "target"], indenters, int(pairs))
-
-
 def predict_rows(model, art: Mapping, rows: np.ndarray) -> np.ndarray:
     """(K,3) the model's forces at the frames `rows` of `art`, each read in its whole contact
     (the GRU's state from the contact's first frame, as the studies and a control loop read)."""

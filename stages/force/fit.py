@@ -135,7 +135,7 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
                  batch_size: int, lr: float, seed: int, finetune_steps: int,
                  source_calibration: Mapping | None = None, target_calibration: Mapping | None = None,
                  train_indenters: Sequence[str] | None = None,
-                 target_markers: Mapping | None = None, pairs: int = 0, additions: Sequence[str] = (),
+                 target_markers: Mapping | None = None, additions: Sequence[str] = (),
                  captured_calibrations: Mapping | None = None, checkpoint: str | None = None) -> dict:
     """Node `transfer[source,target]`: regressors on the source's sequences translated into the
     target's style (images; reference = the target's):
@@ -143,9 +143,8 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
       genforce       trained with the source's labels;
       genforce_comp  trained with the labels compensated to the target's material (the paper's
                      compensation, stages.force.compensation);
-      genforce_plus  genforce_comp with `additions` (stages.force.plus), which read `pairs`
-                     location-paired frames of the target's own collection on
-                     `train_indenters` (its images only).
+      genforce_plus  genforce_comp with `additions` (stages.force.plus), which read the
+                     target's reference image (`target_markers`) and the calibrations.
 
     The material prior of each sensor is its `calibrate` artifact (the twin's), or its
     `capture_calibration` where `captured_calibrations` (sensor body -> artifact) holds one
@@ -184,8 +183,7 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
     comp = compensated_labels(translated, curves)
     ratios = {"source": shear_ratio(source_calibration), "target": shear_ratio(target_calibration)}
     ratios = ratios if None not in ratios.values() else None
-    paired = (plus.paired_frames(translated, target_markers, comp, train_indenters, pairs, ratios)
-              if additions else None)
+    view = plus.target_view(target_markers, ratios) if additions else None
     reference = np.asarray(translated["reference"])
     force = np.asarray(translated["force"], np.float32)
     identity = src_curves == tgt_curves
@@ -206,7 +204,7 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
             comp_seqs, model_cfg, desc=f"{name} genforce_comp", checkpoint=ckpt,
             label="genforce_comp", **kwargs)
         genforce_comp.set_reference(reference)
-    genforce_plus, plus_info = (plus.apply(genforce_comp, paired, additions) if additions
+    genforce_plus, plus_info = (plus.apply(genforce_comp, view, additions) if additions
                                 else (genforce_comp, {}))
     rows = run_rows(runs)
     phase = np.asarray(translated["phase"])
@@ -227,8 +225,7 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
                       "train": train, "source": source, "target": target,
                       "compensation_identity": bool(identity), "curves": curves, "shear_ratios": ratios,
                       **({"calibration": calibration_from} if calibration_from else {}),
-                      "plus": {"additions": additions, **plus_info,
-                               **({"pairs": paired.count} if paired is not None else {})},
+                      "plus": {"additions": additions, **plus_info},
                       "label_scale": {"mean": float(scale.mean()), "min": float(scale.min()),
                                       "max": float(scale.max())},
                       "train_indenters": None if train_indenters is None else list(train_indenters),

@@ -28,13 +28,6 @@ axes' signs undone: the odd part, which cancels an even error.  Fz stays the fra
 reading.  A reference that no mirror leaves alike reads as with "none": its mirror images would
 be contacts on markers the sensor lacks.
 
-Linear Fz read (:meth:`ForceRegressor.set_linear_fz`, off unless set; genforce_plus's
-`linear_fz`): the network's normal force cannot leave its training labels' range (the
-sigmoid), and a contact that presses harder than any it trained on reads at that range's end.
-A model can read Fz as a weighted mean of the network's reading and a linear read of
-:func:`image_statistics` (how much the frame brightens and darkens against the reference, and
-over how many pixels), which is not clipped (:func:`fit_linear_fz`).
-
 Outputs are min-max normalised per axis over [force_min, force_max] (labels outside are
 clipped), so the sigmoid's range is the force range.  force_min = force_max = "auto" (the
 paper's min-max normalisation of the training labels) has train.fit set the range from the
@@ -74,8 +67,6 @@ MIRROR_READS = ("auto", "none")
 # mirror image -> (image dims reversed, force axes negated): columns are x, rows y
 MIRRORS = {"x": ((-1,), (0,)), "y": ((-2,), (1,)), "xy": ((-1, -2), (0, 1))}
 MIRROR_MATCH = 0.9          # a mirror is a symmetry of the reference at this correlation or above
-STATISTICS = ("brighten", "darken", "brighter_share", "darker_share")   # image_statistics
-STATISTICS_THRESHOLD = 0.05
 AUTO = "auto"
 
 
@@ -203,10 +194,6 @@ class ForceRegressor(nn.Module):
         self.register_buffer("force_min", torch.tensor(c["force_min"], dtype=torch.float32))
         self.register_buffer("force_max", torch.tensor(c["force_max"], dtype=torch.float32))
         self.register_buffer("reference", torch.zeros(0, 0, dtype=torch.uint8))
-        # the linear normal-force read (set_linear_fz): coefficients on image_statistics and an
-        # intercept (N), and its weight in the Fz read (0: the network's alone)
-        self.register_buffer("fz_linear", torch.zeros(len(STATISTICS) + 1))
-        self.register_buffer("fz_weight", torch.zeros(1))
 
     @property
     def state_shape(self) -> tuple[int, int, int]:
@@ -219,27 +206,6 @@ class ForceRegressor(nn.Module):
         if ref.ndim != 2 or ref.dtype != np.uint8:
             raise ValueError(f"reference must be a (H,W) uint8 image, got {ref.dtype} {ref.shape}")
         self.reference = torch.from_numpy(ref.copy())
-
-    def set_linear_fz(self, coef, intercept: float, weight: float) -> None:
-        """Read Fz as (1 - weight) times the network's reading plus weight times the linear read
-        coef . image_statistics(frame) + intercept (N); weight 0 turns it off."""
-        coef = np.asarray(coef, np.float32).reshape(-1)
-        if coef.shape != (len(STATISTICS),) or not np.all(np.isfinite(coef)) or not np.isfinite(intercept):
-            raise ValueError(f"linear Fz read: {len(STATISTICS)} finite coefficients and a finite "
-                             f"intercept, got {coef.tolist()} and {intercept}")
-        if not 0.0 <= float(weight) <= 1.0:
-            raise ValueError(f"linear Fz read: weight {weight} is not in [0, 1]")
-        self.fz_linear = torch.tensor([*coef, intercept], dtype=torch.float32, device=self.fz_linear.device)
-        self.fz_weight = torch.tensor([float(weight)], dtype=torch.float32, device=self.fz_weight.device)
-
-    def _linear_fz(self, y, x):
-        """Normalised outputs (B,...,3) of prepared inputs x (B,...,C,S,S) with Fz blended with
-        the linear read (not clipped to the force range: it reads past its labels)."""
-        lin = image_statistics(x, self.config["input_mode"]) @ self.fz_linear[:-1] + self.fz_linear[-1]
-        lo, hi = self.force_min[2], self.force_max[2]
-        # y + w (read - y), on the weights' device without a host sync: exactly y at weight 0
-        fz = y[..., 2] + self.fz_weight[0] * ((lin - lo) / (hi - lo) - y[..., 2])
-        return torch.cat([y[..., :2], fz[..., None]], -1)
 
     def _head(self, h):
         y = self.head(h).mean(dim=(2, 3))
@@ -282,7 +248,7 @@ class ForceRegressor(nn.Module):
             h = self.gru(h, feats[:, k])
             states.append(h)
         out = self._head(torch.stack(states, 1).flatten(0, 1)).unflatten(0, (b, t))
-        return self._linear_fz(self._mirror_mean(out, mirrors, b0), x[:b0]), h
+        return self._mirror_mean(out, mirrors, b0), h
 
     def step(self, x, h=None, mirrors: Sequence[str] = ()):
         """One frame: x (B,C,S,S) -> (normalised forces (B,3), new state); ``mirrors`` as forward's."""
@@ -292,7 +258,7 @@ class ForceRegressor(nn.Module):
         if h is None:
             h = feats.new_zeros((x.shape[0],) + self.state_shape)
         h = self.gru(h, feats)
-        return self._linear_fz(self._mirror_mean(self._head(h), mirrors, b0), x[:b0]), h
+        return self._mirror_mean(self._head(h), mirrors, b0), h
 
     # -- label normalisation
     def normalise(self, force):
@@ -302,47 +268,6 @@ class ForceRegressor(nn.Module):
 
     def denormalise(self, y):
         return self.force_min + y * (self.force_max - self.force_min)
-
-
-def image_statistics(x, input_mode: str = "difference") -> torch.Tensor:
-    """Prepared inputs (...,C,S,S) -> (...,4) STATISTICS of each frame's change from the
-    reference: the mean brightening and darkening, and the shares of pixels that brighten or
-    darken by more than STATISTICS_THRESHOLD (of full scale)."""
-    x = torch.as_tensor(x)
-    d = x[..., 0, :, :] if input_mode == "difference" else x[..., 0, :, :] - x[..., 1, :, :]
-    up, down = d.clamp(min=0.0), (-d).clamp(min=0.0)
-    return torch.stack([up.mean((-2, -1)), down.mean((-2, -1)),
-                        (up > STATISTICS_THRESHOLD).float().mean((-2, -1)),
-                        (down > STATISTICS_THRESHOLD).float().mean((-2, -1))], -1)
-
-
-def fit_linear_fz(statistics, fz, *, translated=None, target=None) -> tuple[np.ndarray, float, dict]:
-    """Least squares (scikit-learn's RidgeCV on standardised statistics) of Fz labels (N,) on
-    image_statistics (N,4) of the frames they label.  With `translated` and `target`
-    (K,4: the statistics of location-paired translated and target frames) each statistic of the
-    training frames is first scaled by the least-squares ratio target / translated, so that
-    the read fits the target's own frames, which it will read.  Returns (coef (4,), intercept,
-    info {scale, r2: on the training frames})."""
-    from sklearn.linear_model import RidgeCV
-    from sklearn.preprocessing import StandardScaler
-    X = np.asarray(statistics, float)
-    fz = np.asarray(fz, float).reshape(-1)
-    if X.ndim != 2 or X.shape[1] != len(STATISTICS) or len(X) != len(fz) or len(fz) < len(STATISTICS) + 2:
-        raise ValueError(f"fit_linear_fz: statistics {X.shape} and labels {fz.shape} must be "
-                         f"(N,{len(STATISTICS)}) and (N,), N > {len(STATISTICS) + 1}")
-    scale = np.ones(len(STATISTICS))
-    if translated is not None:
-        a, b = np.asarray(translated, float), np.asarray(target, float)
-        den = (a * a).sum(0)
-        scale = np.where(den > 0, (a * b).sum(0) / np.where(den > 0, den, 1.0), 1.0)
-    X = X * scale
-    scaler = StandardScaler().fit(X)
-    std = np.where(scaler.scale_ > 0, scaler.scale_, 1.0)
-    ridge = RidgeCV(alphas=np.logspace(-4, 3, 15)).fit((X - scaler.mean_) / std, fz)
-    coef = ridge.coef_ / std
-    intercept = float(ridge.intercept_ - coef @ scaler.mean_)
-    r2 = float(ridge.score((X - scaler.mean_) / std, fz))
-    return coef.astype(np.float32), intercept, {"scale": np.round(scale, 6).tolist(), "r2": round(r2, 6)}
 
 
 def mirror_group(reference, size: int) -> tuple[str, ...]:
@@ -501,22 +426,17 @@ def to_arrays(model: ForceRegressor) -> dict[str, np.ndarray]:
             for k, v in model.state_dict().items()}
 
 
-# arrays a model stored before the linear Fz read lacks (it then reads Fz as the network's alone)
-OPTIONAL_ARRAYS = ("fz_linear", "fz_weight")
-
-
 def from_arrays(arrays: Mapping, config: Mapping) -> ForceRegressor:
     """Rebuild a model (in eval mode) from :func:`to_arrays` output and its config."""
     model = ForceRegressor(config)
-    missing = sorted(set(model.state_dict()) - set(arrays) - set(OPTIONAL_ARRAYS))
+    missing = sorted(set(model.state_dict()) - set(arrays))
     extra = sorted(set(arrays) - set(model.state_dict()))
     if missing or extra:
         raise KeyError(f"force-model arrays do not match the config: missing {missing[:5]}, "
                        f"unexpected {extra[:5]}")
     model.reference = torch.from_numpy(np.array(arrays["reference"], np.uint8))
     state = model.state_dict()
-    model.load_state_dict({k: torch.from_numpy(np.array(arrays[k]).reshape(v.shape)) if k in arrays else v
-                           for k, v in state.items()})
+    model.load_state_dict({k: torch.from_numpy(np.array(arrays[k]).reshape(v.shape)) for k, v in state.items()})
     return model.eval()
 
 

@@ -187,15 +187,14 @@ def _seed_models(transfer: Mapping[str, Mapping], source: str, target: str) -> l
 
 
 def ablation_study(*, homo: Mapping, material: Mapping, hetero: Mapping, transfer: Mapping[str, Mapping],
-                   translated: Mapping[str, Mapping],
                    markers: Mapping[str, Mapping], val_indenters: Sequence[str],
-                   train_indenters: Sequence[str], pairs: int, additions: Sequence[str]) -> dict:
+                   additions: Sequence[str]) -> dict:
     """Node `ablation`: what each addition of genforce_plus earns, on the validation indenters.
 
     For every study (`homo`, `material`, `hetero`: its groups of pairs) and every seed's
     genforce_comp model of each pair (the transfers of `force.seeds`, at least 3), genforce_plus is
     rebuilt with all `additions` and with each one left out in turn (stages.force.plus.apply,
-    on the transfer's location-paired frames), and scored on the target's validation contacts.
+    on the target's view the transfer read), and scored on the target's validation contacts.
     With m(s, v) the mean over the study's pairs of the validation MAE (total) of variant v
     from seed s:
 
@@ -217,8 +216,10 @@ place of mae_total, where every target's validation set has light contacts.
         pairs_of = [[str(s), str(t)] for group in groups.values() for s, t in group]
         studies[study] = [p for k, p in enumerate(pairs_of) if p not in pairs_of[:k]]
     with torch_threads():
-        return _ablation(studies, transfer, translated, markers, list(val_indenters),
-                         list(train_indenters), int(pairs), additions)
+        return _ablation(studies, transfer, markers, list(val_indenters), additions)
+
+
+ABLATION_METRICS = ("mae_total", "mae_fz_light")   # the validation figures each addition is judged by
 
 
 def ablation_variants(additions: Sequence[str]) -> dict[str, list[str]]:
@@ -244,22 +245,18 @@ def ablation_metrics(study: str, scores: Mapping[str, np.ndarray], additions: Se
     return out
 
 
-def _ablation(studies, transfer, translated, markers, val_indenters, train_indenters, pairs,
-              additions) -> dict:
+def _ablation(studies, transfer, markers, val_indenters, additions) -> dict:
     from stages.force import plus
-    from stages.force.fit import compensated_labels
     from stages.force.metrics import force_metrics
     from stages.force.model import load_model, predict_contacts
     variants = ablation_variants(additions)
     metrics, per_study, sets = {}, {}, {}
     for study, study_pairs in studies.items():
         study_pairs = [(str(s), str(t)) for s, t in study_pairs]
-        scores: dict[str, list] = {v: [] for v in variants}        # variant -> per pair: per seed
-        light: dict[str, list] = {v: [] for v in variants}         # the same, of mae_fz_light
+        # metric -> variant -> per pair: per seed (NaN: the pair's validation set lacks it)
+        scores = {m: {v: [] for v in variants} for m in ABLATION_METRICS}
         for s, t in study_pairs:
             key = f"source={s},target={t}"
-            if key not in translated:
-                raise KeyError(f"ablation[{study}]: translated has no {key!r}")
             trained = _seed_models(transfer, s, t)
             if not trained:
                 raise KeyError(f"ablation[{study}]: transfer has no {key!r}")
@@ -271,29 +268,23 @@ def _ablation(studies, transfer, translated, markers, val_indenters, train_inden
             if t not in sets:
                 sets[t] = scoring_set(markers[t], val_indenters, "validation")
             val = sets[t]
-            paired = plus.paired_frames(translated[key], markers[t], compensated_labels(translated[key], info["curves"]),
-                                        train_indenters, pairs, info.get("shear_ratios"))
+            view = plus.target_view(markers[t], info.get("shear_ratios"))
             models = [load_model(a, "genforce_comp") for _, a in trained]
-            if scores["all"] and len(models) != len(scores["all"][0]):
+            seen = scores["mae_total"]["all"]
+            if seen and len(models) != len(seen[0]):
                 raise ValueError(f"ablation[{study}]: {s} -> {t} has {len(models)} seed models, the "
-                                 f"study's other pairs {len(scores['all'][0])}")
-            per_variant = {v: [] for v in variants}
-            per_light = {v: [] for v in variants}
-            for model in models:
-                for v, used in variants.items():
-                    built, _ = plus.apply(model, paired, used)
-                    pred = predict_contacts(built, val["images"], val["contact_id"], val["reference"])
-                    scored = force_metrics(pred, val["force"])
-                    per_variant[v].append(scored["mae_total"])
-                    per_light[v].append(scored.get("mae_fz_light", np.nan))
-            for v in variants:
-                scores[v].append(per_variant[v])
-                light[v].append(per_light[v])
-        table = {v: np.asarray(scores[v], float).T for v in variants}   # (seeds, pairs)
-        metrics.update(ablation_metrics(study, table, additions))
-        metrics.update(ablation_metrics(study, {v: np.asarray(light[v], float).T for v in variants},
-                                        additions, "mae_fz_light"))
-        per_study[study] = table
+                                 f"study's other pairs {len(seen[0])}")
+            for v, used in variants.items():
+                scored = [force_metrics(predict_contacts(plus.apply(model, view, used)[0], val["images"],
+                                                         val["contact_id"], val["reference"]), val["force"])
+                          for model in models]
+                for m in ABLATION_METRICS:
+                    scores[m][v].append([x.get(m, np.nan) for x in scored])
+        tables = {m: {v: np.asarray(by_v[v], float).T for v in variants}      # (seeds, pairs)
+                  for m, by_v in scores.items()}
+        for m, table in tables.items():
+            metrics.update(ablation_metrics(study, table, additions, m))
+        per_study[study] = tables["mae_total"]
     from stages.force.figures import ablation_png
     from stages.summary import ablation_table, markdown
     table = ablation_table(metrics)

@@ -284,16 +284,14 @@ def test_shear_calibration_scales_the_shear_read_alone(trained):
     model, _, images, _, _ = trained
     seq = images[0]
     before = predict_sequence(model, seq)
-    scaled = plus.apply(model, plus.Paired({}, {}, np.zeros((2, 2), int), np.zeros((2, 3)), [], np.zeros((0, 3)),
-                                           {"source": 0.5, "target": 0.2}), ["shear_calibration"])
+    scaled = plus.apply(model, plus.TargetView(REF, {"source": 0.5, "target": 0.2}), ["shear_calibration"])
     got, info = scaled
     assert info["shear_calibration"]["scale"] == pytest.approx(0.4) and info["shear_calibration"]["calibrated"]
     after = predict_sequence(got, seq)
     np.testing.assert_allclose(after[:, :2], 0.4 * before[:, :2], rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(after[:, 2], before[:, 2], rtol=1e-6)
     np.testing.assert_array_equal(predict_sequence(from_arrays(to_arrays(got), got.config), seq), after)
-    same, info = plus.apply(model, plus.Paired({}, {}, np.zeros((2, 2), int), np.zeros((2, 3)), [], np.zeros((0, 3)),
-                                              None), ["shear_calibration"])
+    same, info = plus.apply(model, plus.TargetView(REF, None), ["shear_calibration"])
     assert info["shear_calibration"] == {"scale": 1.0, "calibrated": False}
     np.testing.assert_array_equal(predict_sequence(same, seq), before)
 
@@ -358,7 +356,7 @@ def nodes_out(skins, tiny_config):
                         finetune_steps=2, train_indenters=train, **kw)
     stiffer = fit_transfer(translated=skins["A"], source_calibration=_calibration_art(1.0),
                            target_calibration=_calibration_art(2.0), source="B", target="A",
-                           finetune_steps=0, train_indenters=train, target_markers=skins["A_dim"], pairs=0,
+                           finetune_steps=0, train_indenters=train, target_markers=skins["A_dim"],
                            additions=list(plus.ADDITIONS), **kw)
     return own, same, stiffer
 
@@ -375,7 +373,6 @@ def test_fit_own_outputs(nodes_out, skins):
     assert bytes(out["figures"]["loss"][:8]) == PNG
     model = load_model(out)
     assert np.array_equal(model.reference.numpy(), skins["A"]["reference"])
-    assert float(model.fz_weight) == 0.0
     json.dumps(out["attrs"])                                     # attrs are JSON-able
 
     class Stored(dict):
@@ -411,32 +408,36 @@ def test_fit_transfer_identity_copies_genforce(nodes_out):
 
 
 def test_genforce_plus_is_genforce_comp_with_each_addition_applied(nodes_out, skins):
-    """genforce_plus's stored weights are plus.apply of genforce_comp on the paired frames, bit for
-    bit; each addition leaves its mark: the mirror read in the config and the linear Fz read;
-    the encoder's weights and batch norms are genforce_comp's."""
+    """genforce_plus's stored weights are plus.apply of genforce_comp on the target's view, bit
+    for bit; each addition leaves its mark: the mirror read in the config and the shear range
+    scaled by the calibrations' ratios; the encoder's weights and batch norms are genforce_comp's."""
     _, _, stiffer = nodes_out
     info = stiffer["attrs"]["plus"]
-    assert info["additions"] == list(plus.ADDITIONS) and info["pairs"] == 30     # 6 contacts x 5 paired
+    assert info["additions"] == list(plus.ADDITIONS) == ["mirror_shear", "shear_calibration"]
     comp, got = load_model(stiffer, "genforce_comp"), load_model(stiffer, "genforce_plus")
     assert comp.config["mirror_read"] == "none" and got.config["mirror_read"] == "auto"
     assert info["mirror_shear"] == {"mirrors": []}              # a blank reference has no pattern to mirror
-    assert float(got.fz_weight) == plus.LINEAR_FZ_WEIGHT and info["linear_fz"]["weight"] == 0.5
-    assert float(comp.fz_weight) == 0.0
+    ratios = stiffer["attrs"]["shear_ratios"]
+    if ratios is None:
+        assert info["shear_calibration"] == {"scale": 1.0, "calibrated": False}
+        assert got.config["force_min"] == comp.config["force_min"]
+    else:
+        scale = ratios["target"] / ratios["source"]
+        assert info["shear_calibration"]["scale"] == pytest.approx(scale, rel=1e-5)
+        np.testing.assert_allclose(got.config["force_min"][:2], np.multiply(comp.config["force_min"][:2], scale),
+                                   rtol=1e-5)
+    assert got.config["force_min"][2] == comp.config["force_min"][2]
     assert torch.equal(got.encoder.stem[1].running_mean, comp.encoder.stem[1].running_mean)
-    from stages.force.fit import compensated_labels
-    paired = plus.paired_frames(skins["A"], skins["A_dim"], compensated_labels(skins["A"], stiffer["attrs"]["curves"]),
-                                ["sphere", "prism"], 0)
-    again, again_info = plus.apply(comp, paired, plus.ADDITIONS)
+    again, again_info = plus.apply(comp, plus.target_view(skins["A_dim"], ratios), plus.ADDITIONS)
     for k, v in to_arrays(again).items():
         np.testing.assert_array_equal(v, stiffer["genforce_plus"][k], err_msg=k)
-    assert again_info == {k: v for k, v in info.items() if k not in ("additions", "pairs")}
+    assert again_info == {k: v for k, v in info.items() if k != "additions"}
     with pytest.raises(InputError, match=r"plus.additions \['ensemble'\] are not among"):
         plus.check_additions(["ensemble"], "t")
     with pytest.raises(InputError, match="names one twice"):
-        plus.check_additions(["linear_fz", "linear_fz"], "t")
-    with pytest.raises(ValueError, match="1 location-paired frames; the additions need 2"):
-        plus.apply(comp, plus.Paired(skins["A"], skins["A"], np.array([[3], [4]]), np.zeros((1, 3)), [],
-                                     np.zeros((0, 3))), ["linear_fz"])
+        plus.check_additions(["mirror_shear", "mirror_shear"], "t")
+    with pytest.raises(ValueError, match=r"genforce_plus needs the target's own collection \(target_markers\)"):
+        plus.target_view({"images": skins["A"]["images"]})
 
 
 def test_predict_rows_reads_each_row_in_its_whole_contact(trained):
@@ -537,23 +538,23 @@ def test_the_default_splits_are_disjoint_and_test_is_the_authors_unseen_set():
 def test_ablation_arithmetic_on_a_stub_study():
     """delta = mean over seeds of (the variant without it - all); spread = sd over seeds of all,
     each seed's figure the mean over the study's pairs."""
-    adds = ["mirror_shear", "linear_fz"]
-    assert ablation_variants(adds) == {"all": adds, "none": [], "-mirror_shear": ["linear_fz"],
-                                       "-linear_fz": ["mirror_shear"]}
+    adds = ["mirror_shear", "shear_calibration"]
+    assert ablation_variants(adds) == {"all": adds, "none": [], "-mirror_shear": ["shear_calibration"],
+                                       "-shear_calibration": ["mirror_shear"]}
     scores = {"all": [[1.0, 3.0], [2.0, 2.0], [1.5, 3.5]],          # per seed: 2.0, 2.0, 2.5
               "none": [[3.0, 3.0], [3.0, 3.0], [3.0, 3.0]],
               "-mirror_shear": [[1.5, 3.5], [2.5, 2.5], [2.0, 4.0]],   # +0.5 each: delta 0.5
-              "-linear_fz": [[1.0, 3.0], [2.0, 2.0], [1.0, 3.0]]}      # 2, 2, 2: delta -1/6
+              "-shear_calibration": [[1.0, 3.0], [2.0, 2.0], [1.0, 3.0]]}      # 2, 2, 2: delta -1/6
     m = ablation_metrics("s", scores, adds)
     assert m["ablation/s/seed_spread/mae_total"] == pytest.approx(np.std([2.0, 2.0, 2.5], ddof=1))
     assert m["ablation/s/mirror_shear/delta_mae_total"] == pytest.approx(0.5)
-    assert m["ablation/s/linear_fz/delta_mae_total"] == pytest.approx(-1 / 6)
+    assert m["ablation/s/shear_calibration/delta_mae_total"] == pytest.approx(-1 / 6)
     assert m["ablation/s/genforce_plus/mae_total"] == pytest.approx(13 / 6)
     assert m["ablation/s/genforce_comp/mae_total"] == pytest.approx(3.0)
     with pytest.raises(ValueError, match="2 seeds; the seed spread needs 3 or more"):
         ablation_metrics("s", {k: v[:2] for k, v in scores.items()}, adds)
     light = ablation_metrics("s", scores, adds, "mae_fz_light")          # the same arithmetic, renamed
-    assert light["ablation/s/linear_fz/delta_mae_fz_light"] == pytest.approx(-1 / 6)
+    assert light["ablation/s/shear_calibration/delta_mae_fz_light"] == pytest.approx(-1 / 6)
     assert light["ablation/s/seed_spread/mae_fz_light"] == pytest.approx(np.std([2.0, 2.0, 2.5], ddof=1))
     assert not any("mae_total" in k for k in light)
     # a pair whose validation set has no light contact (NaN): no light figures for the study
@@ -643,67 +644,4 @@ def test_an_unreadable_or_foreign_force_checkpoint_is_set_aside_or_ignored(skins
     assert "resumed_at_step" not in out["timing"]
     _same_node_output(out, whole)
 
-
-# ---------------------------------------------------------------------------- linear Fz read
-
-def test_image_statistics_of_a_known_change(tiny_config):
-    """A frame that brightens 8 of 64 pixels by 0.5 and darkens 4 by 0.02 (under the 0.05
-    threshold): mean brightening 4/64, darkening 0.08/64, shares 8/64 and 0."""
-    from stages.force.model import image_statistics
-    x = torch.zeros(2, 1, 8, 8)
-    x[1, 0, 0, :] = 0.5
-    x[1, 0, 1, :4] = -0.02
-    s = image_statistics(x).numpy()
-    np.testing.assert_allclose(s, [[0, 0, 0, 0], [4 / 64, 0.08 / 64, 8 / 64, 0]], rtol=1e-6, atol=1e-9)
-    stacked = torch.cat([x + 0.25, torch.full_like(x, 0.25)], 1)     # "stack": image and reference
-    np.testing.assert_allclose(image_statistics(stacked, "stack").numpy(), s, rtol=1e-5, atol=1e-7)
-
-
-def test_fit_linear_fz_recovers_a_linear_law_and_the_targets_scale():
-    """Labels linear in the statistics give back their coefficients; where the target shows a
-    statistic at twice the translations' size (paired frames), that coefficient halves, so the
-    read of the target's frames gives the labels."""
-    from stages.force.model import fit_linear_fz
-    rng = np.random.default_rng(0)
-    X = rng.uniform(0, 0.2, (200, 4))
-    c, b = np.array([-30.0, -5.0, 10.0, 2.0]), 0.7
-    coef, intercept, info = fit_linear_fz(X, X @ c + b)
-    np.testing.assert_allclose(coef, c, rtol=1e-3)
-    assert abs(intercept - b) < 1e-3 and info["r2"] > 0.9999 and info["scale"] == [1.0] * 4
-    paired = X[:30]
-    coef2, intercept2, info2 = fit_linear_fz(X, X @ c + b, translated=paired, target=paired * [2, 1, 1, 1])
-    np.testing.assert_allclose(info2["scale"], [2, 1, 1, 1], rtol=1e-6)
-    np.testing.assert_allclose(coef2, c / [2, 1, 1, 1], rtol=1e-3)
-    target_frames = X * [2, 1, 1, 1]
-    np.testing.assert_allclose(target_frames @ coef2 + intercept2, X @ c + b, atol=1e-2)
-    with pytest.raises(ValueError, match=r"fit_linear_fz: statistics \(200, 3\) and labels \(200,\)"):
-        fit_linear_fz(X[:, :3], X @ c)
-
-
-def test_linear_fz_read_blends_fz_past_the_range_and_leaves_shear(trained):
-    """With weight w the model's Fz is (1 - w) x the network's + w x the linear read, which is
-    not clipped to the force range; shear is unchanged; streaming reads the same; the read
-    travels with the arrays, and arrays stored without it load with the network's Fz alone."""
-    from stages.force.model import image_statistics, prepare
-    model, _, images, _, _ = trained
-    seq = images[0]
-    plain = predict_sequence(model, seq)
-    blended = from_arrays(to_arrays(model), model.config)
-    coef, b = np.array([-900.0, 50.0, -20.0, 0.0], np.float32), -0.5
-    blended.set_linear_fz(coef, b, 0.25)
-    got = predict_sequence(blended, seq)
-    lin = image_statistics(prepare(seq, REF, model.config)).numpy() @ coef + b
-    np.testing.assert_allclose(got[:, :2], plain[:, :2], atol=1e-6)
-    np.testing.assert_allclose(got[:, 2], 0.75 * plain[:, 2] + 0.25 * lin, atol=1e-4)
-    assert got[:, 2].min() < blended.config["force_min"][2]          # read past the range
-    stream = StreamingPredictor(blended)
-    np.testing.assert_allclose(np.stack([stream.step(f) for f in seq]), got, atol=1e-4)
-    back = from_arrays(to_arrays(blended), blended.config)
-    np.testing.assert_allclose(predict_sequence(back, seq), got, atol=1e-6)
-    old = {k: v for k, v in to_arrays(blended).items() if k not in ("fz_linear", "fz_weight")}
-    np.testing.assert_allclose(predict_sequence(from_arrays(old, model.config), seq), plain, atol=1e-6)
-    with pytest.raises(ValueError, match=r"linear Fz read: weight 1.5 is not in \[0, 1\]"):
-        blended.set_linear_fz(coef, b, 1.5)
-    with pytest.raises(ValueError, match=r"linear Fz read: 4 finite coefficients"):
-        blended.set_linear_fz(coef[:3], b, 0.5)
 

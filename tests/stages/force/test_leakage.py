@@ -59,7 +59,7 @@ def _chain(source, target, tiny_config):
     config = {**tiny_config, "seq_len": 10}
     transfer = fit_transfer(translated=translated, source_calibration=_calibration(1.0, 0.5),
                             target_calibration=_calibration(1.6, 0.2), source="S", target="T", config=config,
-                            finetune_steps=2, train_indenters=TRAIN, target_markers=target, pairs=0,
+                            finetune_steps=2, train_indenters=TRAIN, target_markers=target,
                             additions=list(plus.ADDITIONS), **FIT)
     own = {s: fit_own(markers=markers[s], skin=s, train_indenters=TRAIN, config=config, **FIT)
            for s in ("S", "T")}
