@@ -144,7 +144,10 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
       genforce_comp  trained with the labels compensated to the target's material (the paper's
                      compensation, stages.force.compensation);
       genforce_plus  genforce_comp with `additions` (stages.force.plus), which read the
-                     target's reference image (`target_markers`) and the calibrations.
+                     target's reference image and rest frames (`target_markers`) and the
+                     calibrations; with rest_noise (where it changes the translations) its own
+                     fit, genforce_comp's labels, schedule and seed on the translations with the
+                     target's rest noise, whose weights the output keeps as `plus_base`.
 
     The material prior of each sensor is its `calibrate` artifact (the twin's), or its
     `capture_calibration` where `captured_calibrations` (sensor body -> artifact) holds one
@@ -161,7 +164,7 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
     from stages.force import plus
     from stages.force.compensation import (curves_figure, curves_from_calibration, label_scale, loading_mask,
                                            shear_ratio)
-    from stages.force.model import to_arrays
+    from stages.force.model import prepare, to_arrays
     from stages.force.train import ContactSequence, fit_two_stage, loss_figure, make_sequences
     name = f"transfer[{source}->{target}]"
     additions = plus.check_additions(additions, name)
@@ -183,7 +186,7 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
     comp = compensated_labels(translated, curves)
     ratios = {"source": shear_ratio(source_calibration), "target": shear_ratio(target_calibration)}
     ratios = ratios if None not in ratios.values() else None
-    view = plus.target_view(target_markers, ratios) if additions else None
+    view = plus.target_view(target_markers, ratios, train_indenters) if additions else None
     reference = np.asarray(translated["reference"])
     force = np.asarray(translated["force"], np.float32)
     identity = src_curves == tgt_curves
@@ -204,8 +207,19 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
             comp_seqs, model_cfg, desc=f"{name} genforce_comp", checkpoint=ckpt,
             label="genforce_comp", **kwargs)
         genforce_comp.set_reference(reference)
-    genforce_plus, plus_info = (plus.apply(genforce_comp, view, additions) if additions
+    base, trained = genforce_comp, {}
+    if "rest_noise" in additions:
+        trained["rest_noise"] = plan = plus.rest_noise_plan(translated, view, train_indenters)
+        if plan["applied"]:
+            noisy = [ContactSequence(prepare(plus.rest_noise(images, view, (int(seed), k)), reference, model_cfg),
+                                     comp[a:b])
+                     for k, (images, (a, b)) in enumerate(zip(read_runs(translated, "images", runs), runs))]
+            base, histories["genforce_plus"] = fit_two_stage(
+                noisy, model_cfg, desc=f"{name} genforce_plus", checkpoint=ckpt, label="genforce_plus", **kwargs)
+            base.set_reference(reference)
+    genforce_plus, plus_info = (plus.apply(base, view, additions) if additions
                                 else (genforce_comp, {}))
+    plus_info = {**trained, **plus_info}
     rows = run_rows(runs)
     phase = np.asarray(translated["phase"])
     scale = (np.ones(rows.size) if identity else
@@ -219,9 +233,11 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
                                                 f"compensation {source} -> {target}")
     return {"genforce": to_arrays(genforce), "genforce_comp": to_arrays(genforce_comp),
             "genforce_plus": to_arrays(genforce_plus),
+            **({"plus_base": to_arrays(base)} if base is not genforce_comp else {}),
             "attrs": {"config": genforce.config,
                       "configs": {"genforce_comp": genforce_comp.config,
-                                  "genforce_plus": genforce_plus.config},
+                                  "genforce_plus": genforce_plus.config,
+                                  **({"plus_base": base.config} if base is not genforce_comp else {})},
                       "train": train, "source": source, "target": target,
                       "compensation_identity": bool(identity), "curves": curves, "shear_ratios": ratios,
                       **({"calibration": calibration_from} if calibration_from else {}),
