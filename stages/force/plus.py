@@ -16,8 +16,7 @@ The additions, in the order they are applied (ADDITIONS):
                 target's reference exactly, while a real frame at rest differs from it in the
                 pixels that its camera noise tips over the segmentation threshold (about 0.1%
                 of a GelSight frame's).  A model trained on the clean translations reads that
-                noise as force (several tenths of a newton to 2 N at rest, the range a grasp
-                needs).  Each translated frame takes, in the pixels where one of the target's
+                noise as force, about as much as the light contact a grasp needs.  Each translated frame takes, in the pixels where one of the target's
                 rest frames (drawn at random) differs from the target's reference, that rest
                 frame's values.  Rest frames: the release frames at depth 0 of the target's
                 contacts of the training indenters.  Translations that already carry as much
@@ -80,8 +79,8 @@ def target_view(target_markers: Mapping, shear_ratios: Mapping | None = None,
 
 def rest_rows(art: Mapping, indenters: Sequence[str] | None = None) -> np.ndarray:
     """The rows of `art`'s rest frames: release frames at depth 0 (the robot's record: the
-    indenter is off the skin) of its contacts of `indenters` (None: all).  None without a
-    `depth` or `phase` record."""
+    indenter is off the skin) of its contacts of `indenters` (None: all); no rows where `art`
+    records no `depth` or `phase`."""
     from stages.force.data import contact_runs, run_rows
     if "depth" not in art or "phase" not in art:
         return np.zeros(0, int)
