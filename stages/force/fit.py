@@ -190,7 +190,8 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
     reference = np.asarray(translated["reference"])
     force = np.asarray(translated["force"], np.float32)
     identity = src_curves == tgt_curves
-    seqs = make_sequences(read_runs(translated, "images", runs), [force[a:b] for a, b in runs],
+    images = read_runs(translated, "images", runs)
+    seqs = make_sequences(images, [force[a:b] for a, b in runs],
                           reference, model_cfg)
     kwargs = dict(steps=int(steps), finetune_steps=int(finetune_steps), batch_size=int(batch_size),
                   lr=float(lr), seed=int(seed), **recipe(train),
@@ -211,9 +212,9 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
     if "rest_noise" in additions:
         trained["rest_noise"] = plan = plus.rest_noise_plan(translated, view, train_indenters)
         if plan["applied"]:
-            noisy = [ContactSequence(prepare(plus.rest_noise(images, view, (int(seed), k)), reference, model_cfg),
+            noisy = [ContactSequence(prepare(plus.rest_noise(frames, view, (int(seed), k)), reference, model_cfg),
                                      comp[a:b])
-                     for k, (images, (a, b)) in enumerate(zip(read_runs(translated, "images", runs), runs))]
+                     for k, (frames, (a, b)) in enumerate(zip(images, runs))]
             base, histories["genforce_plus"] = fit_two_stage(
                 noisy, model_cfg, desc=f"{name} genforce_plus", checkpoint=ckpt, label="genforce_plus", **kwargs)
             base.set_reference(reference)

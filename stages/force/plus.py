@@ -16,9 +16,10 @@ The additions, in the order they are applied (ADDITIONS):
                 target's reference exactly, while a real frame at rest differs from it in the
                 pixels that its camera noise tips over the segmentation threshold (about 0.1%
                 of a GelSight frame's).  A model trained on the clean translations reads that
-                noise as force, about as much as the light contact a grasp needs.  Each translated frame takes, in the pixels where one of the target's
-                rest frames (drawn at random) differs from the target's reference, that rest
-                frame's values.  Rest frames: the release frames at depth 0 of the target's
+                noise as force, about as much as the light contact a grasp needs.  Each
+                translated frame takes, in the pixels where one of the target's rest frames
+                (drawn at random) differs from the target's reference, that rest frame's
+                values.  Rest frames: the release frames at depth 0 of the target's
                 contacts of the training indenters.  Translations that already carry as much
                 noise (a translation between skins of one marker pattern is the source's own
                 frames, noise and all) are left as they are, and so is a target without rest
@@ -49,7 +50,6 @@ import numpy as np
 
 ADDITIONS = ("rest_noise", "mirror_shear", "shear_calibration")
 TRAINED = ("rest_noise",)          # applied in training (genforce_plus's own fit)
-RELEASE_PHASE = 3                  # the collection's release phase (stages.common: 0 press ... 3 release)
 NOISE_SHARE = 0.5                  # translations whose rest frames differ from the target's reference
                                    # in at least this share of the target's rest noise carry it already
 
@@ -71,22 +71,28 @@ def target_view(target_markers: Mapping, shear_ratios: Mapping | None = None,
     if target_markers is None or "reference" not in target_markers:
         raise ValueError("genforce_plus needs the target's own collection (target_markers) for its reference image")
     reference = np.asarray(target_markers["reference"])
-    rows = rest_rows(target_markers, indenters)
-    rest = (np.stack([np.asarray(target_markers["images"][int(r)]) for r in rows]) if rows.size
-            else np.zeros((0,) + reference.shape, reference.dtype))
-    return TargetView(reference, shear_ratios, rest)
+    return TargetView(reference, shear_ratios, rest_frames(target_markers, indenters, reference))
 
 
 def rest_rows(art: Mapping, indenters: Sequence[str] | None = None) -> np.ndarray:
     """The rows of `art`'s rest frames: release frames at depth 0 (the robot's record: the
     indenter is off the skin) of its contacts of `indenters` (None: all); no rows where `art`
     records no `depth` or `phase`."""
+    from stages.force.compensation import UNLOADING_PHASES
     from stages.force.data import contact_runs, run_rows
     if "depth" not in art or "phase" not in art:
         return np.zeros(0, int)
     rows = run_rows(contact_runs(art, indenters))
     depth, phase = np.asarray(art["depth"])[rows], np.asarray(art["phase"])[rows]
-    return rows[(phase == RELEASE_PHASE) & (depth == 0)]
+    return rows[np.isin(phase, UNLOADING_PHASES) & (depth == 0)]
+
+
+def rest_frames(art: Mapping, indenters: Sequence[str] | None, reference: np.ndarray) -> np.ndarray:
+    """`art`'s rest frames (K,H,W) (rest_rows); (0,H,W) of `reference`'s shape where it has none."""
+    rows = rest_rows(art, indenters)
+    if not rows.size:
+        return np.zeros((0,) + reference.shape, reference.dtype)
+    return np.stack([np.asarray(art["images"][int(r)]) for r in rows])
 
 
 def noise_share(frames: np.ndarray, reference: np.ndarray) -> float:
@@ -102,10 +108,10 @@ def rest_noise(images: np.ndarray, view: TargetView, seed) -> np.ndarray:
         raise ValueError("rest_noise: the target has no rest frames")
     rng = np.random.default_rng(seed)
     pick = rng.integers(0, len(view.rest), len(images))
+    masks = view.rest != view.reference[None]
     out = np.array(images, copy=True)
     for k, j in enumerate(pick):
-        mask = view.rest[j] != view.reference
-        out[k][mask] = view.rest[j][mask]
+        out[k][masks[j]] = view.rest[j][masks[j]]
     return out
 
 
@@ -114,9 +120,7 @@ def rest_noise_plan(translated: Mapping, view: TargetView, indenters: Sequence[s
     "translation_share"} (the rest noise's pixel shares of the target's rest frames and of the
     translations' own rest frames)."""
     rest = view.rest if view.rest is not None else np.zeros((0,) + view.reference.shape)
-    rows = rest_rows(translated, indenters)
-    own = (np.stack([np.asarray(translated["images"][int(r)]) for r in rows]) if rows.size
-           else np.zeros((0,) + view.reference.shape, view.reference.dtype))
+    own = rest_frames(translated, indenters, view.reference)
     target, trans = noise_share(rest, view.reference), noise_share(own, view.reference)
     applied = bool(len(rest) and target > 0 and trans < NOISE_SHARE * target)
     return {"applied": applied, "rest_frames": int(len(rest)), "target_share": round(target, 8),

@@ -247,12 +247,6 @@ def ablation_metrics(study: str, scores: Mapping[str, np.ndarray], additions: Se
     return out
 
 
-def _has(art, prefix: str) -> bool:
-    """Whether a transfer artifact (or output dict) holds the model group `prefix`."""
-    head = prefix + "/"
-    return prefix in art or any(str(k).startswith(head) for k in art)
-
-
 def _ablation(studies, transfer, markers, val_indenters, additions) -> dict:
     from stages.force import plus
     from stages.force.metrics import force_metrics
@@ -279,7 +273,7 @@ def _ablation(studies, transfer, markers, val_indenters, additions) -> dict:
             view = plus.target_view(markers[t], info.get("shear_ratios"))
             models = [load_model(a, "genforce_comp") for _, a in trained]
             # a TRAINED addition's weights (plus_base; genforce_comp's where it changed nothing)
-            bases = [load_model(a, "plus_base") if _has(a, "plus_base") else m
+            bases = [load_model(a, "plus_base") if "plus_base" in (attrs_of(a).get("configs") or {}) else m
                      for (_, a), m in zip(trained, models)]
             seen = scores["mae_total"]["all"]
             if seen and len(models) != len(seen[0]):
