@@ -198,7 +198,7 @@ GRAPH.node("transfer", "stages.force.fit:fit_transfer",
                    "source_calibration": "{cal[{source}]}", "target_calibration": "{cal[{target}]}",
                    "target_markers": "{seq[{target}]}",
                    "captured_calibrations": "capture_calibration[*]"},
-           params={**_FIT, "additions": "plus.additions", **_SEQ,
+           params={**_FIT, "additions": "plus.additions", "rest_noise_length": "plus.rest_noise_length", **_SEQ,
                    "cal": Wiring("stages.catalogue:calibrations", _CAT)},
            grid={"source,target": _TRANSFER_PAIRS, "seed": "force.seeds"},
            description="GenForce: regressors on translated images with source labels, raw (genforce), "

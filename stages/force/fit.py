@@ -136,6 +136,7 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
                  source_calibration: Mapping | None = None, target_calibration: Mapping | None = None,
                  train_indenters: Sequence[str] | None = None,
                  target_markers: Mapping | None = None, additions: Sequence[str] = (),
+                 rest_noise_length: float = 1.0,
                  captured_calibrations: Mapping | None = None, checkpoint: str | None = None) -> dict:
     """Node `transfer[source,target]`: regressors on the source's sequences translated into the
     target's style (images; reference = the target's):
@@ -145,9 +146,11 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
                      compensation, stages.force.compensation);
       genforce_plus  genforce_comp with `additions` (stages.force.plus), which read the
                      target's reference image and rest frames (`target_markers`) and the
-                     calibrations; with rest_noise (where it changes the translations) its own
-                     fit, genforce_comp's labels, schedule and seed on the translations with the
-                     target's rest noise, whose weights the output keeps as `plus_base`.
+                     calibrations; with rest_noise (where it changes the translations) a
+                     fine-tune of genforce_comp's weights with its labels on the translations
+                     with the target's rest noise: genforce_comp's schedule, `rest_noise_length`
+                     times as long (at least one step per stage), whose weights the output
+                     keeps as `plus_base`.
 
     The material prior of each sensor is its `calibrate` artifact (the twin's), or its
     `capture_calibration` where `captured_calibrations` (sensor body -> artifact) holds one
@@ -215,8 +218,16 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
             noisy = [ContactSequence(prepare(plus.rest_noise(frames, view, (int(seed), k)), reference, model_cfg),
                                      comp[a:b])
                      for k, (frames, (a, b)) in enumerate(zip(images, runs))]
+            length = float(rest_noise_length)
+            if not 0.0 < length <= 1.0:
+                from stages.common import InputError
+                raise InputError(f"{name}: plus.rest_noise_length must lie in (0, 1], got {rest_noise_length!r}")
+            short = {**kwargs, "seed": int(seed) + 2,
+                     "steps": max(1, round(int(steps) * length)),
+                     "finetune_steps": max(1, round(int(finetune_steps) * length)) if int(finetune_steps) else 0}
             base, histories["genforce_plus"] = fit_two_stage(
-                noisy, model_cfg, desc=f"{name} genforce_plus", checkpoint=ckpt, label="genforce_plus", **kwargs)
+                noisy, genforce_comp.config, init=to_arrays(genforce_comp), desc=f"{name} genforce_plus",
+                checkpoint=ckpt, label="genforce_plus", **short)
             base.set_reference(reference)
     genforce_plus, plus_info = (plus.apply(base, view, additions) if additions
                                 else (genforce_comp, {}))

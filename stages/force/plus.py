@@ -3,11 +3,12 @@
 Every addition reads only what a lab has without a force label of the target: the target's
 no-contact image, its rest frames (the robot's record says where the indenter was off the skin)
 and the two sensors' material calibrations (TargetView).  One addition is applied in training
-(TRAINED): genforce_plus's own fit, genforce_comp's labels, schedule and seed on the translations
-that the addition changes; the others after training, to a copy of that model (of genforce_comp
-where nothing is trained).  So the ablation (stages.force.study.ablation_study) can take each one
-away in turn from models of several seeds without retraining: the transfer keeps the trained
-weights (`plus_base`) beside genforce_comp's.
+(TRAINED): a fine-tune of genforce_comp's weights with its labels on the translations that the
+addition changes (genforce_comp's schedule, plus.rest_noise_length times as long); the others
+after training, to a copy of that model (of genforce_comp where nothing is trained).  So the
+ablation (stages.force.study.ablation_study) can take each one away in turn from models of
+several seeds without retraining: the transfer keeps the trained weights (`plus_base`) beside
+genforce_comp's.
 
 The additions, in the order they are applied (ADDITIONS):
 
@@ -49,7 +50,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 ADDITIONS = ("rest_noise", "mirror_shear", "shear_calibration")
-TRAINED = ("rest_noise",)          # applied in training (genforce_plus's own fit)
+TRAINED = ("rest_noise",)          # applied in training (a fine-tune of genforce_comp)
 NOISE_SHARE = 0.5                  # translations whose rest frames differ from the target's reference
                                    # in at least this share of the target's rest noise carry it already
 

@@ -500,6 +500,29 @@ def test_genforce_plus_trains_on_the_translations_with_the_targets_rest_noise(re
         np.testing.assert_array_equal(v, noisy["genforce_plus"][k], err_msg=k)
 
 
+def test_rest_noise_fine_tunes_genforce_comp_for_a_share_of_its_length(skins, tiny_config):
+    """plus_base starts from genforce_comp's weights and trains rest_noise_length of its steps;
+    one step from genforce_comp at a zero learning rate leaves its weights as they are (only
+    the batch norms' running statistics move)."""
+    kw = dict(config={**tiny_config, "seq_len": 10}, steps=8, batch_size=2, lr=0.05, seed=0, finetune_steps=0,
+              train_indenters=["sphere", "prism"], source_calibration=_calibration_art(1.0),
+              target_calibration=_calibration_art(2.0), source="B", target="A", target_markers=skins["A_rest"],
+              additions=["rest_noise"])
+    out = fit_transfer(translated=skins["A"], rest_noise_length=0.25, **kw)
+    hist = out["attrs"]["history"]
+    assert hist["genforce_plus"]["pretrain"]["steps"] == 2 and hist["genforce_comp"]["pretrain"]["steps"] == 8
+    frozen = fit_transfer(translated=skins["A"], rest_noise_length=0.1, **{**kw, "lr": 0.0})
+    assert frozen["attrs"]["history"]["genforce_plus"]["pretrain"]["steps"] == 1
+    stats = [k for k in frozen["genforce_comp"] if "running_" in k or "num_batches" in k]
+    assert stats and all(not np.array_equal(frozen["plus_base"][k], frozen["genforce_comp"][k]) for k in stats
+                         if "running_" in k)
+    for k, v in frozen["genforce_comp"].items():
+        if k not in stats:
+            np.testing.assert_array_equal(frozen["plus_base"][k], v, err_msg=k)
+    with pytest.raises(InputError, match=r"transfer\[B->A\]: plus.rest_noise_length must lie in \(0, 1\], got 1.5"):
+        fit_transfer(translated=skins["A"], rest_noise_length=1.5, **kw)
+
+
 def test_the_ablation_takes_rest_noise_away_with_its_weights(rested, skins):
     """A variant without rest_noise starts from genforce_comp, one with it from plus_base."""
     from stages.force.data import scoring_set
