@@ -171,6 +171,10 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
     from stages.force.train import ContactSequence, fit_two_stage, loss_figure, make_sequences
     name = f"transfer[{source}->{target}]"
     additions = plus.check_additions(additions, name)
+    length = float(rest_noise_length)
+    if not 0.0 < length <= 1.0:
+        from stages.common import InputError
+        raise InputError(f"{name}: plus.rest_noise_length must lie in (0, 1], got {rest_noise_length!r}")
     (source_calibration, target_calibration), calibration_from = calibrations(
         (source_calibration, target_calibration), captured_calibrations)
     if (source_calibration is None) != (target_calibration is None):
@@ -218,10 +222,6 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
             noisy = [ContactSequence(prepare(plus.rest_noise(frames, view, (int(seed), k)), reference, model_cfg),
                                      comp[a:b])
                      for k, (frames, (a, b)) in enumerate(zip(images, runs))]
-            length = float(rest_noise_length)
-            if not 0.0 < length <= 1.0:
-                from stages.common import InputError
-                raise InputError(f"{name}: plus.rest_noise_length must lie in (0, 1], got {rest_noise_length!r}")
             short = {**kwargs, "seed": int(seed) + 2,
                      "steps": max(1, round(int(steps) * length)),
                      "finetune_steps": max(1, round(int(finetune_steps) * length)) if int(finetune_steps) else 0}
