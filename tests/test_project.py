@@ -223,7 +223,7 @@ def test_a_sensor_copied_under_a_new_name_joins_its_family(tmp_path):
     assert f"render[skin={new}]" in added and f"markers[skin={new}]" in added
     seeds = P.load(project.params_file, None, [], project.profiles_dir)["force"]["seeds"]
     assert {f"own[skin={new},seed={k}]" for k in seeds} <= set(added) and seeds
-    assert inst[f"render[skin={new}]"].inputs["deform"] == "deform[sensor=gelsight-r10]"
+    assert inst[f"render[skin={new}]"].inputs["deform"] == "deform[sensor=gelsight-A-II]"
     assert not any(n.startswith(("deform[", "calibrate[")) for n in added)
     assert new in inst["m2m[fit=twin]"].inputs["markers"]
     homo = {tuple(p) for g in inst["homo"].params["groups"].values() for p in g}

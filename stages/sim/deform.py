@@ -206,9 +206,10 @@ def calibrate(*, indenters: Mapping, trajectory: Mapping, sensor: str, spec: Map
     """Node `calibrate[sensor=...]`: the calibration indentation on one sensor.
 
     The calibration trajectory's normalised depth is pressed to the sensor's max_depth_mm
-    (GelSight 1.4 mm, the paper's d_max; TacTip 4.5 mm; uSkin 1 mm, the paper's
-    heterogeneous calibration), so every sensor's curve spans normalised depth 0..1; its shear
-    leg is the sensor's collection stroke (the trajectory's times the sensor's shear_scale).
+    (the material study's GelSight gels 1.4 mm, the paper's d_max; the homo and hetero
+    GelSights 1 mm, TacTip 4.5 mm and uSkin 1 mm, the paper's heterogeneous calibration), so
+    every sensor's curve spans normalised depth 0..1; its shear leg is the sensor's collection
+    stroke (the trajectory's times the sensor's shear_scale).
     Returns depth (N,) mm, normalised_depth (N,), force (N,3) float32, loading (N,) bool,
     repetition (N,) int32, phase (N,) int8, shift (N,2) mm (the shear leg's), and
     figures/force_depth.

@@ -91,9 +91,9 @@ def test_calibration_capture_needs_a_force_sensor(ci, calibration_inputs, tmp_pa
     with pytest.raises(InputError, match=r"capture_calibration\[gelsight-r10\]: unknown session setting\(s\) "
                                          r"depth_scale \(known: name, chunk_frames, tool_change\)"):
         _capture(ci, calibration_inputs, tmp_path, session={"depth_scale": 2.0})
-    with pytest.raises(InputError, match=r"capture_calibration\[gelsight-A-II\]: a calibration belongs to a "
-                                         r"body; list gelsight-r10 \(the body gelsight-A-II rides on\)"):
-        _capture(ci, calibration_inputs, tmp_path, sensor="gelsight-A-II")
+    with pytest.raises(InputError, match=r"capture_calibration\[gelsight-A-I\]: a calibration belongs to a "
+                                         r"body; list gelsight-A-II \(the body gelsight-A-I rides on\)"):
+        _capture(ci, calibration_inputs, tmp_path, sensor="gelsight-A-I")
     assert os.listdir(tmp_path) == []
 
 
