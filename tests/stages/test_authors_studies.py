@@ -74,7 +74,7 @@ def test_authors_members_pairs_and_groups(folders):
                    "gelsight": "authors_calibration[sensor=gelsight]", "tactip": "authors_calibration[sensor=tactip]"}
     # the twin: its markers and its bodies' calibrate
     assert C.sequence_node(sensors, studies) == {"node": "markers", "var": "skin"}
-    assert C.calibrations(sensors, studies)["gelsight-A-I"] == "calibrate[sensor=gelsight-r10]"
+    assert C.calibrations(sensors, studies)["gelsight-A-I"] == "calibrate[sensor=gelsight-A-II]"
     assert set(C.sequences(sensors, studies).values()) == {f"markers[skin={s}]" for s in C.active(sensors, studies)}
 
 
