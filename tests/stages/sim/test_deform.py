@@ -30,6 +30,16 @@ def _cat(chunks, key):
     return np.concatenate([c[key] for c in chunks])
 
 
+def _calibrated_frames(params, indenters, collection, run_node, calibration, sensor, spec, keys):
+    """A sensor's calibration artifact and the named arrays of its frames of `collection`."""
+    cal = calibrate(indenters=indenters, trajectory=calibration, sensor=sensor, spec=spec,
+                    materials=params["materials"])
+    chunks, _ = run_node(deform_sequence(
+        indenters=indenters, sim_trajectory={}, collection_trajectory=collection, sensor=sensor,
+        spec=spec, materials=params["materials"], contacts_per_indenter=0, frame_stride=9))
+    return cal, {k: _cat(chunks, k) for k in keys}
+
+
 def test_schema(gelsight):
     spec, (chunks, final) = gelsight
     h, w = spec["grid"]
@@ -237,13 +247,8 @@ def test_tactip_shear_stroke_makes_the_papers_shear_labels_fit(ci_params, indent
             spec = dict(ci_params["sensors"][sensor])
             if sensor == "tactip":
                 spec["shear_scale"] = stroke
-            cal = calibrate(indenters=indenter_artifact, trajectory=tr, sensor=sensor, spec=spec,
-                            materials=ci_params["materials"])
-            chunks, final = run_node(deform_sequence(
-                indenters=indenter_artifact, sim_trajectory={}, collection_trajectory=collection,
-                sensor=sensor, spec=spec, materials=ci_params["materials"], contacts_per_indenter=0,
-                frame_stride=9))
-            out[sensor] = (cal, {k: _cat(chunks, k) for k in ("force", "normalised_depth", "phase", "shift")})
+            out[sensor] = _calibrated_frames(ci_params, indenter_artifact, collection, run_node, tr, sensor,
+                                             spec, ("force", "normalised_depth", "phase", "shift"))
         (cal_s, src), (cal_t, tgt) = out["gelsight-r10"], out["tactip"]
         assert np.abs(tgt["shift"]).max() == pytest.approx(stroke)
         assert np.abs(cal_t["shift"]).max() == pytest.approx(stroke)      # its calibration's leg too
@@ -284,21 +289,19 @@ def test_hetero_gelsight_calibrated_to_its_deepest_press_makes_the_papers_labels
     from stages.force.compensation import curves_from_calibration, label_scale, loading_mask
     tr = calibration_trajectory(n_steps=8, repetitions=1, shear_mm=1.0, shear_steps=4)
     assert ci_params["sensors"]["gelsight-A-II"]["max_depth_mm"] == 1.0
-    run = {}
-    for sensor, d_max in (("gelsight-A-II", 1.0), ("gelsight-A-II", 1.4), ("uskin-3axis", 1.0)):
-        spec = {**ci_params["sensors"][sensor], "max_depth_mm": d_max}
-        cal = calibrate(indenters=indenter_artifact, trajectory=tr, sensor=sensor, spec=spec,
-                        materials=ci_params["materials"])
-        chunks, _ = run_node(deform_sequence(
-            indenters=indenter_artifact, sim_trajectory={}, collection_trajectory=collection,
-            sensor=sensor, spec=spec, materials=ci_params["materials"], contacts_per_indenter=0,
-            frame_stride=9))
-        run[sensor, d_max] = (curves_from_calibration(cal),
-                              {k: _cat(chunks, k) for k in ("force", "normalised_depth", "phase")})
+    curves, frames = {}, {}
+    for sensor in ("gelsight-A-II", "uskin-3axis"):      # the frames do not depend on d_max
+        cal, frames[sensor] = _calibrated_frames(ci_params, indenter_artifact, collection, run_node, tr,
+                                                 sensor, ci_params["sensors"][sensor], ("force", "depth", "phase"))
+        curves[sensor, 1.0] = curves_from_calibration(cal)
+    curves["gelsight-A-II", 1.4] = curves_from_calibration(calibrate(
+        indenters=indenter_artifact, trajectory=tr, sensor="gelsight-A-II",
+        spec={**ci_params["sensors"]["gelsight-A-II"], "max_depth_mm": 1.4}, materials=ci_params["materials"]))
 
     def fz_slope(source, target):       # least squares through 0 of true Fz on the labels
-        (cs, s), (ct, t) = run[source], run[target]
-        comp = s["force"][:, 2] * label_scale(s["normalised_depth"], loading_mask(s["phase"]), cs, ct)
+        s, t = frames[source[0]], frames[target[0]]
+        normalised = s["depth"] / source[1]
+        comp = s["force"][:, 2] * label_scale(normalised, loading_mask(s["phase"]), curves[source], curves[target])
         return float(comp @ t["force"][:, 2] / (comp @ comp))
     uskin = ("uskin-3axis", 1.0)
     found = {d: (fz_slope(("gelsight-A-II", d), uskin), fz_slope(uskin, ("gelsight-A-II", d)))
