@@ -274,6 +274,14 @@ def calibrations(sensors: Mapping, studies: Mapping, data_source="twin", data_ro
     return out
 
 
+def punch_calibrations(sensors: Mapping, studies: Mapping, data_source="twin", data_root=None) -> dict[str, str]:
+    """{sensor: its flat-punch calibration, or "" where it has none} for every force-study
+    sensor: the twin's `calibrate_punch[sensor=<its body>]`; the authors' sensors have none."""
+    twin = set(active(sensors, studies, FORCE_STUDIES, data_source, data_root, twin_only=True))
+    return {n: f"calibrate_punch[sensor={body(sensors, n)}]" if n in twin else ""
+            for n in force_sensors(sensors, studies, data_source, data_root)}
+
+
 def twin_data(data_source="twin") -> dict:
     """{} for the twin's data; with the authors' an error, for a node that runs the twin's
     sensors alone (raised only when a run needs that node)."""

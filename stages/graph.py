@@ -47,6 +47,11 @@ GRAPH.node("calibration_trajectory", "stages.sim.trajectory:calibration_trajecto
            params={k: f"calibration_trajectory.{k}" for k in (
                "max_depth_mm", "n_steps", "repetitions", "indenter", "rate_hz", "shear_mm", "shear_steps")},
            description="3 indentations to d_max and back (a shear leg at d_max), for material compensation")
+GRAPH.node("punch_trajectory", "stages.sim.trajectory:calibration_trajectory",
+           params={**{k: f"calibration_trajectory.{k}" for k in (
+               "max_depth_mm", "n_steps", "repetitions", "rate_hz", "shear_mm", "shear_steps")},
+                   "indenter": "plus.punch_indenter"},
+           description="the calibration's indentations with a flat punch (genforce_plus's punch_calibration)")
 
 # -- marker representation ----------------------------------------------------------------
 GRAPH.node("patterns", "stages.markers.patterns:reference_set",
@@ -73,6 +78,11 @@ GRAPH.node("calibrate", "stages.sim.deform:calibrate",
            params={"spec": "sensors.{sensor}", "materials": "materials"},
            grid={"sensor": _cat("bodies", force_only=True)},
            description="force vs normalised depth, loading and unloading, for material compensation")
+GRAPH.node("calibrate_punch", "stages.sim.deform:calibrate",
+           inputs={"indenters": "indenters", "trajectory": "punch_trajectory"},
+           params={"spec": "sensors.{sensor}", "materials": "materials"},
+           grid={"sensor": _cat("bodies", force_only=True)},
+           description="force vs normalised depth under a flat punch, for genforce_plus's punch_calibration")
 GRAPH.node("contact_check", "stages.sim.checks:contact_check",
            params={"spec": "sensors.sim", "materials": "materials",
                    "radius_mm": "contact_check.radius_mm", "depths_mm": "contact_check.depths_mm"},
@@ -197,9 +207,11 @@ GRAPH.node("transfer", "stages.force.fit:fit_transfer",
            inputs={"translated": "translate[source={source},target={target}]",
                    "source_calibration": "{cal[{source}]}", "target_calibration": "{cal[{target}]}",
                    "target_markers": "{seq[{target}]}",
+                   "source_punch": "{pcal[{source}]}", "target_punch": "{pcal[{target}]}",
                    "captured_calibrations": "capture_calibration[*]"},
            params={**_FIT, "additions": "plus.additions", "rest_noise_length": "plus.rest_noise_length", **_SEQ,
-                   "cal": Wiring("stages.catalogue:calibrations", _CAT)},
+                   "cal": Wiring("stages.catalogue:calibrations", _CAT),
+                   "pcal": Wiring("stages.catalogue:punch_calibrations", _CAT)},
            grid={"source,target": _TRANSFER_PAIRS, "seed": "force.seeds"},
            description="GenForce: regressors on translated images with source labels, raw (genforce), "
                        "compensated (genforce_comp) and with our additions (genforce_plus)")

@@ -163,6 +163,7 @@ def test_the_ranges_option_lists_are_the_nodes_own():
     from stages.sim.indenters import ALL_INDENTERS
     expected = {
         "indenters.names": ALL_INDENTERS, "calibration_trajectory.indenter": ALL_INDENTERS,
+        "plus.punch_indenter": ALL_INDENTERS,
         "patterns.names": PATTERNS, "sensors.*.look": unify.LOOKS, "sensors.*.variant": uskin.VARIANTS,
         "render.backend": ("auto", *mitsuba_backend.VARIANTS), "segmentation.method": segment.METHODS,
         "segmentation.*.polarity": segment.POLARITIES, "capture.devices": tuple(DEVICES),
@@ -468,3 +469,9 @@ def test_transfers_compensate_with_a_captured_calibration(ci_store):
     assert 0 < twin["plus"]["shear_calibration"]["scale"] < 1                 # TacTip feels less shear
     assert captured["plus"]["shear_calibration"] == {"scale": 1.0, "calibrated": False}
     assert captured["shear_ratios"] is None
+    # punch_calibration reads the twin's punch curves beside the twin's prism curves, never
+    # beside a captured calibration: into TacTip a flat face presses less than the prism says
+    assert twin["plus"]["punch_calibration"]["calibrated"] is True
+    assert 0 < twin["plus"]["punch_calibration"]["scale"] < 0.8
+    assert captured["plus"]["punch_calibration"] == {"scale": 1.0, "calibrated": False}
+    assert captured["punch_scale"] is None

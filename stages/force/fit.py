@@ -136,7 +136,8 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
                  source_calibration: Mapping | None = None, target_calibration: Mapping | None = None,
                  train_indenters: Sequence[str] | None = None,
                  target_markers: Mapping | None = None, additions: Sequence[str] = (),
-                 rest_noise_length: float = 1.0,
+                 rest_noise_length: float = 1.0, source_punch: Mapping | None = None,
+                 target_punch: Mapping | None = None,
                  captured_calibrations: Mapping | None = None, checkpoint: str | None = None) -> dict:
     """Node `transfer[source,target]`: regressors on the source's sequences translated into the
     target's style (images; reference = the target's):
@@ -150,7 +151,9 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
                      fine-tune of genforce_comp's weights with its labels on the translations
                      with the target's rest noise: genforce_comp's schedule, `rest_noise_length`
                      times as long (at least one step per stage), whose weights the output
-                     keeps as `plus_base`.
+                     keeps as `plus_base`.  punch_calibration reads the two sensors' flat-punch
+                     calibrations (`source_punch`, `target_punch`: calibrate_punch artifacts), where
+                     both are given and neither prism calibration was captured (attrs punch_scale).
 
     The material prior of each sensor is its `calibrate` artifact (the twin's), or its
     `capture_calibration` where `captured_calibrations` (sensor body -> artifact) holds one
@@ -193,9 +196,17 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
     comp = compensated_labels(translated, curves)
     ratios = {"source": shear_ratio(source_calibration), "target": shear_ratio(target_calibration)}
     ratios = ratios if None not in ratios.values() else None
-    view = plus.target_view(target_markers, ratios, train_indenters) if additions else None
     reference = np.asarray(translated["reference"])
     force = np.asarray(translated["force"], np.float32)
+    rows = run_rows(runs)
+    phase = np.asarray(translated["phase"])
+    punch = None
+    if calibrated and source_punch is not None and target_punch is not None and not calibration_from:
+        punch = plus.punch_scale(force[rows], np.asarray(translated["normalised_depth"], float)[rows],
+                                 loading_mask(phase[rows]), {"source": src_curves, "target": tgt_curves},
+                                 {"source": curves_from_calibration(source_punch),
+                                  "target": curves_from_calibration(target_punch)})
+    view = plus.target_view(target_markers, ratios, train_indenters, punch) if additions else None
     identity = src_curves == tgt_curves
     images = read_runs(translated, "images", runs)
     seqs = make_sequences(images, [force[a:b] for a, b in runs],
@@ -232,8 +243,6 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
     genforce_plus, plus_info = (plus.apply(base, view, additions) if additions
                                 else (genforce_comp, {}))
     plus_info = {**trained, **plus_info}
-    rows = run_rows(runs)
-    phase = np.asarray(translated["phase"])
     scale = (np.ones(rows.size) if identity else
              label_scale(np.asarray(translated["normalised_depth"], float)[rows], loading_mask(phase[rows]),
                          src_curves, tgt_curves))
@@ -252,6 +261,7 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
                                   **({"plus_base": base.config} if base is not genforce_comp else {})},
                       "train": train, "source": source, "target": target,
                       "compensation_identity": bool(identity), "curves": curves, "shear_ratios": ratios,
+                      "punch_scale": punch,
                       **({"calibration": calibration_from} if calibration_from else {}),
                       "plus": {"additions": additions, **plus_info},
                       "label_scale": {"mean": float(scale.mean()), "min": float(scale.min()),

@@ -36,6 +36,18 @@ The additions, in the order they are applied (ADDITIONS):
                 force's curves, and a sensor's shear stiffness against its normal stiffness
                 (how deep it presses for its shear stroke, its friction) is not in them.
                 Without a shear leg in both calibrations the read is left as it is.
+  punch_calibration
+                the whole read rescaled from the compensation of the calibration prism to that
+                of a flat punch (params plus.punch_indenter; node calibrate_punch: the same
+                indentations, to the same depths): the least-squares factor that takes the
+                source's training labels compensated with the prism's curves to the same labels
+                compensated with the punch's (punch_scale).  One indenter's curves fix the
+                ratio of two sensors' forces at every normalised depth, but where the sensors
+                press to different depths (TacTip 4.5 mm against GelSight's 1 mm) that ratio
+                depends on how the indenter's contact grows with depth: a knife edge's contact
+                grows with it on TacTip's dome, a flat face's does not, and most training
+                indenters press with a flat face.  Without punch calibrations of both sensors
+                (the authors' sets, a captured calibration) the read is left as it is.
 
 Which additions a genforce_plus model carries is the params' `plus.additions`; each one kept
 there has beaten the seed spread on the validation indenters
@@ -49,7 +61,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-ADDITIONS = ("rest_noise", "mirror_shear", "shear_calibration")
+ADDITIONS = ("rest_noise", "mirror_shear", "shear_calibration", "punch_calibration")
 TRAINED = ("rest_noise",)          # applied in training (a fine-tune of genforce_comp)
 NOISE_SHARE = 0.5                  # translations whose rest frames differ from the target's reference
                                    # in at least this share of the target's rest noise carry it already
@@ -59,20 +71,36 @@ NOISE_SHARE = 0.5                  # translations whose rest frames differ from 
 class TargetView:
     """What the additions read of the target, none of it a force label: its no-contact image
     (H,W), the shear-to-normal ratios of the source's and the target's calibrations
-    ({"source", "target"}; None: either has none) and its rest frames (K,H,W) (none: (0,H,W))."""
+    ({"source", "target"}; None: either has none), its rest frames (K,H,W) (none: (0,H,W))
+    and the punch calibrations' rescaling of the compensated labels (punch_scale; None: either
+    sensor has no punch calibration)."""
     reference: np.ndarray
     shear_ratios: Mapping | None = None
     rest: np.ndarray | None = None
+    punch_scale: float | None = None
 
 
 def target_view(target_markers: Mapping, shear_ratios: Mapping | None = None,
-                indenters: Sequence[str] | None = None) -> TargetView:
+                indenters: Sequence[str] | None = None, punch_scale: float | None = None) -> TargetView:
     """The TargetView of the target's own collection `target_markers`: its reference image and
     its rest frames among the contacts of `indenters` (None: all)."""
     if target_markers is None or "reference" not in target_markers:
         raise ValueError("genforce_plus needs the target's own collection (target_markers) for its reference image")
     reference = np.asarray(target_markers["reference"])
-    return TargetView(reference, shear_ratios, rest_frames(target_markers, indenters, reference))
+    return TargetView(reference, shear_ratios, rest_frames(target_markers, indenters, reference), punch_scale)
+
+
+def punch_scale(force, normalised_depth, loading, prism: Mapping, punch: Mapping) -> float:
+    """The least-squares k with k * (labels compensated with the prism's curves) closest to the
+    labels compensated with the punch's: `force` (N,3) the source's training labels at
+    `normalised_depth` (N,) on the `loading` (N,) branch; prism and punch: {"source",
+    "target": Curves}.  1.0 for labels that carry no force."""
+    from stages.force.compensation import label_scale
+    force = np.asarray(force, float)
+    by = {name: force * label_scale(normalised_depth, loading, curves["source"], curves["target"])[:, None]
+          for name, curves in (("prism", prism), ("punch", punch))}
+    norm = float(np.sum(by["prism"] ** 2))
+    return float(np.sum(by["prism"] * by["punch"]) / norm) if norm > 0 else 1.0
 
 
 def rest_rows(art: Mapping, indenters: Sequence[str] | None = None) -> np.ndarray:
@@ -151,7 +179,31 @@ def apply(model, target: TargetView, additions: Sequence[str]) -> tuple[object, 
             info[name] = {"mirrors": list(out.mirrors_for(target.reference))}
         elif name == "shear_calibration":
             info[name] = scale_shear(out, target.shear_ratios)
+        elif name == "punch_calibration":
+            info[name] = scale_read(out, target.punch_scale)
     return out.eval(), info
+
+
+def _scale_range(model, scale) -> None:
+    """Multiply `model`'s force range (force_min, force_max; N) by `scale` (3,) per axis."""
+    import torch
+    lo = np.asarray(model.config["force_min"], float) * scale
+    hi = np.asarray(model.config["force_max"], float) * scale
+    model.config["force_min"], model.config["force_max"] = lo.round(6).tolist(), hi.round(6).tolist()
+    model.force_min.copy_(torch.tensor(model.config["force_min"], dtype=torch.float32))
+    model.force_max.copy_(torch.tensor(model.config["force_max"], dtype=torch.float32))
+
+
+def scale_read(model, scale: float | None) -> dict:
+    """Scale `model`'s whole read (its three axes' force range) by `scale` (punch_scale); with
+    None the model is left as it is.  The info: the scale."""
+    if scale is None:
+        return {"scale": 1.0, "calibrated": False}
+    scale = float(scale)
+    if not (scale > 0 and np.isfinite(scale)):
+        raise ValueError(f"punch_calibration: scale {scale} must be positive")
+    _scale_range(model, np.full(3, scale))
+    return {"scale": round(scale, 6), "calibrated": True}
 
 
 def scale_shear(model, ratios: Mapping | None) -> dict:
@@ -159,17 +211,12 @@ def scale_shear(model, ratios: Mapping | None) -> dict:
     range times that factor: the sigmoid's reading maps to that many times the force); with
     no ratios (None, or either None) the model is left as it is.  The info: the scale and the
     ratios."""
-    import torch
     if not ratios or ratios.get("source") is None or ratios.get("target") is None:
         return {"scale": 1.0, "calibrated": False}
     src, tgt = float(ratios["source"]), float(ratios["target"])
     if not (src > 0 and tgt > 0 and np.isfinite(src) and np.isfinite(tgt)):
         raise ValueError(f"shear_calibration: shear-to-normal ratios {src} -> {tgt} must be positive")
     scale = tgt / src
-    lo, hi = np.asarray(model.config["force_min"], float), np.asarray(model.config["force_max"], float)
-    lo[:2], hi[:2] = lo[:2] * scale, hi[:2] * scale
-    model.config["force_min"], model.config["force_max"] = lo.round(6).tolist(), hi.round(6).tolist()
-    model.force_min.copy_(torch.tensor(model.config["force_min"], dtype=torch.float32))
-    model.force_max.copy_(torch.tensor(model.config["force_max"], dtype=torch.float32))
+    _scale_range(model, np.array([scale, scale, 1.0]))
     return {"scale": round(scale, 6), "calibrated": True, "source_ratio": round(src, 6),
             "target_ratio": round(tgt, 6)}

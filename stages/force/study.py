@@ -270,7 +270,7 @@ def _ablation(studies, transfer, markers, val_indenters, additions) -> dict:
             if t not in sets:
                 sets[t] = scoring_set(markers[t], val_indenters, "validation")
             val = sets[t]
-            view = plus.target_view(markers[t], info.get("shear_ratios"))
+            view = plus.target_view(markers[t], info.get("shear_ratios"), punch_scale=info.get("punch_scale"))
             models = [load_model(a, "genforce_comp") for _, a in trained]
             # a TRAINED addition's weights (plus_base; genforce_comp's where it changed nothing)
             bases = [load_model(a, "plus_base") if "plus_base" in (attrs_of(a).get("configs") or {}) else m

@@ -357,7 +357,8 @@ def nodes_out(skins, tiny_config):
     stiffer = fit_transfer(translated=skins["A"], source_calibration=_calibration_art(1.0),
                            target_calibration=_calibration_art(2.0), source="B", target="A",
                            finetune_steps=0, train_indenters=train, target_markers=skins["A_dim"],
-                           additions=list(plus.ADDITIONS), **kw)
+                           additions=list(plus.ADDITIONS), source_punch=_calibration_art(1.0),
+                           target_punch=_calibration_art(3.0), **kw)
     return own, same, stiffer
 
 
@@ -409,11 +410,16 @@ def test_fit_transfer_identity_copies_genforce(nodes_out):
 
 def test_genforce_plus_is_genforce_comp_with_each_addition_applied(nodes_out, skins):
     """genforce_plus's stored weights are plus.apply of genforce_comp on the target's view, bit
-    for bit; each addition leaves its mark: the mirror read in the config and the shear range
-    scaled by the calibrations' ratios; the encoder's weights and batch norms are genforce_comp's."""
+    for bit; each addition leaves its mark: the mirror read in the config, the shear range
+    scaled by the calibrations' ratios and the whole range by the punch calibrations' (the
+    prism's curves are 2x, the punch's 3x: 1.5); the encoder's weights and batch norms are
+    genforce_comp's."""
     _, _, stiffer = nodes_out
     info = stiffer["attrs"]["plus"]
-    assert info["additions"] == list(plus.ADDITIONS) == ["rest_noise", "mirror_shear", "shear_calibration"]
+    assert info["additions"] == list(plus.ADDITIONS) == ["rest_noise", "mirror_shear", "shear_calibration",
+                                                         "punch_calibration"]
+    assert stiffer["attrs"]["punch_scale"] == pytest.approx(1.5, rel=1e-9)
+    assert info["punch_calibration"] == {"scale": 1.5, "calibrated": True}
     # the dim target records no depth: no rest frames, nothing to train, genforce_comp's weights
     assert info["rest_noise"] == {"applied": False, "rest_frames": 0, "target_share": 0.0,
                                   "translation_share": 0.0}
@@ -424,15 +430,16 @@ def test_genforce_plus_is_genforce_comp_with_each_addition_applied(nodes_out, sk
     ratios = stiffer["attrs"]["shear_ratios"]
     if ratios is None:
         assert info["shear_calibration"] == {"scale": 1.0, "calibrated": False}
-        assert got.config["force_min"] == comp.config["force_min"]
+        scale = 1.0
     else:
         scale = ratios["target"] / ratios["source"]
         assert info["shear_calibration"]["scale"] == pytest.approx(scale, rel=1e-5)
-        np.testing.assert_allclose(got.config["force_min"][:2], np.multiply(comp.config["force_min"][:2], scale),
-                                   rtol=1e-5)
-    assert got.config["force_min"][2] == comp.config["force_min"][2]
+    np.testing.assert_allclose(got.config["force_min"][:2], np.multiply(comp.config["force_min"][:2], 1.5 * scale),
+                               rtol=1e-5)
+    assert got.config["force_min"][2] == pytest.approx(1.5 * comp.config["force_min"][2], rel=1e-5)
+    assert got.config["force_max"][2] == pytest.approx(1.5 * comp.config["force_max"][2], rel=1e-5)
     assert torch.equal(got.encoder.stem[1].running_mean, comp.encoder.stem[1].running_mean)
-    again, again_info = plus.apply(comp, plus.target_view(skins["A_dim"], ratios), plus.ADDITIONS)
+    again, again_info = plus.apply(comp, plus.target_view(skins["A_dim"], ratios, punch_scale=1.5), plus.ADDITIONS)
     for k, v in to_arrays(again).items():
         np.testing.assert_array_equal(v, stiffer["genforce_plus"][k], err_msg=k)
     assert again_info == {k: v for k, v in info.items() if k not in ("additions", "rest_noise")}
@@ -442,6 +449,30 @@ def test_genforce_plus_is_genforce_comp_with_each_addition_applied(nodes_out, sk
         plus.check_additions(["mirror_shear", "mirror_shear"], "t")
     with pytest.raises(ValueError, match=r"genforce_plus needs the target's own collection \(target_markers\)"):
         plus.target_view({"images": skins["A"]["images"]})
+
+
+def test_punch_scale_is_the_least_squares_factor_between_the_two_compensations():
+    """Prism curves 2x (target over source) at every depth; punch curves d^2 + 2d against
+    2 (d^2 + 2d) on the source, d^2 + 6d on the target: ratio (d + 6) / (2 d + 4) per frame.
+    The factor is sum(p q) / sum(q q) over the compensated labels, the shear axes included."""
+    from stages.force.compensation import fit_curves
+    curves = {k: fit_curves(*_calibration(v)) for k, v in (("one", 1.0), ("two", 2.0))}
+    target_punch = Curves((1.0, 6.0, 0.0), (1.0, 6.0, 0.0))
+    force = np.c_[0.2 * np.ones(5), -0.1 * np.ones(5), -np.arange(1.0, 6.0)]
+    depth, loading = np.linspace(0.2, 1.0, 5), np.ones(5, bool)
+    q = force * 2.0
+    p = force * ((depth + 6) / (2 * depth + 4))[:, None]
+    got = plus.punch_scale(force, depth, loading, {"source": curves["one"], "target": curves["two"]},
+                           {"source": curves["two"], "target": target_punch})
+    assert got == pytest.approx(float((p * q).sum() / (q * q).sum()), rel=1e-9)
+    assert 0.58 < got < 0.71                                      # (d + 6) / (2 d + 4) / 2 at d 0.2..1
+    same = plus.punch_scale(force, depth, loading, {"source": curves["one"], "target": curves["two"]},
+                            {"source": curves["one"], "target": curves["two"]})
+    assert same == pytest.approx(1.0, rel=1e-12)
+    assert plus.punch_scale(np.zeros((5, 3)), depth, loading, {"source": curves["one"], "target": curves["two"]},
+                            {"source": curves["two"], "target": target_punch}) == 1.0
+    with pytest.raises(ValueError, match="punch_calibration: scale -1.0 must be positive"):
+        plus.scale_read(None, -1.0)
 
 
 def test_rest_rows_are_the_release_frames_at_depth_zero(skins):

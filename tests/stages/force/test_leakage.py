@@ -60,7 +60,8 @@ def _chain(source, target, tiny_config):
     transfer = fit_transfer(translated=translated, source_calibration=_calibration(1.0, 0.5),
                             target_calibration=_calibration(1.6, 0.2), source="S", target="T", config=config,
                             finetune_steps=2, train_indenters=TRAIN, target_markers=target,
-                            additions=list(plus.ADDITIONS), **FIT)
+                            additions=list(plus.ADDITIONS), source_punch=_calibration(1.2, 0.5),
+                            target_punch=_calibration(2.4, 0.2), **FIT)
     own = {s: fit_own(markers=markers[s], skin=s, train_indenters=TRAIN, config=config, **FIT)
            for s in ("S", "T")}
     test = {k: np.asarray(target[k]) for k in ("images", "contact_id", "reference")}
@@ -105,6 +106,7 @@ def test_no_method_but_the_oracle_reads_the_targets_labels(worlds, how):
     assert clean[3]["plus"]["additions"] == list(plus.ADDITIONS)
     assert clean[3]["plus"]["rest_noise"]["applied"] is True and "plus_base" in clean[0]
     assert clean[3]["plus"]["shear_calibration"]["scale"] == pytest.approx(0.4)     # 0.2 / 0.5
+    assert clean[3]["plus"]["punch_calibration"]["scale"] == pytest.approx(1.25)    # 2.4 / 1.2 over 1.6
     # the oracle trains on the target's labels: the same change alters it
     oracle, changed = clean[2], poisoned[2]
     assert any(not np.array_equal(v, changed[k], equal_nan=False) for k, v in oracle.items()), how

@@ -36,6 +36,8 @@ def test_no_calibration_is_the_identity_and_reads_no_depth(no_depth, kw):
         np.testing.assert_array_equal(v, out["genforce_comp"][k], err_msg=k)
     assert "genforce_comp" not in out["attrs"]["history"] and set(out["figures"]) == {"loss"}
     assert out["attrs"]["plus"]["shear_calibration"] == {"scale": 1.0, "calibrated": False}   # no shear legs
+    assert out["attrs"]["punch_scale"] is None                                           # no punch calibrations
+    assert out["attrs"]["plus"]["punch_calibration"] == {"scale": 1.0, "calibrated": False}
     np.testing.assert_array_equal(compensated_labels(no_depth["A"], None), no_depth["A"]["force"])
 
 
