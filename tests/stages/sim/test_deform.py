@@ -311,3 +311,39 @@ def test_hetero_gelsight_calibrated_to_its_deepest_press_makes_the_papers_labels
     assert 0.85 < into < 1.15 and 0.85 < back < 1.15
     into, back = found[1.4]
     assert into > 1.2 and back < 0.8
+
+
+def test_punch_calibration_makes_the_labels_into_tactip_fit(ci_params, indenter_artifact, collection,
+                                                            run_node):
+    """GelSight -> TacTip and back, location-paired frames of the same collection contacts (a
+    sphere and a flat-faced cylinder), TacTip pressed 4.5x as deep.  The prism's curves set the
+    two sensors' force ratio by the prism's contact, which on TacTip's dome grows with depth as
+    a flat face's does not: the compensated labels overstate TacTip's normal force 1.5x.
+    genforce_plus's punch_calibration (plus.punch_scale: the labels rescaled to the flat punch's
+    compensation) brings that slope to 1, and takes the labels from TacTip from over GelSight's
+    force to under it by as much."""
+    from stages.force.compensation import curves_from_calibration, label_scale, loading_mask
+    from stages.force.plus import punch_scale
+    prism = calibration_trajectory(n_steps=8, repetitions=1)
+    punch = calibration_trajectory(n_steps=8, repetitions=1, indenter="calib_punch")
+    curves, frames = {}, {}
+    for sensor in ("gelsight-A-II", "tactip"):
+        spec = ci_params["sensors"][sensor]
+        cal, frames[sensor] = _calibrated_frames(ci_params, indenter_artifact, collection, run_node, prism,
+                                                 sensor, spec, ("force", "normalised_depth", "phase"))
+        curves[sensor] = {"prism": curves_from_calibration(cal), "punch": curves_from_calibration(calibrate(
+            indenters=indenter_artifact, trajectory=punch, sensor=sensor, spec=spec, materials=ci_params["materials"]))}
+
+    def slopes(source, target):          # least squares through 0 of true Fz on the labels
+        s, t = frames[source], frames[target]
+        loading = loading_mask(s["phase"])
+        comp = s["force"] * label_scale(s["normalised_depth"], loading, curves[source]["prism"],
+                                        curves[target]["prism"])[:, None]
+        k = punch_scale(s["force"], s["normalised_depth"], loading,
+                        *({"source": curves[source][c], "target": curves[target][c]} for c in ("prism", "punch")))
+        plain = float(comp[:, 2] @ t["force"][:, 2] / (comp[:, 2] @ comp[:, 2]))
+        return plain, plain / k, k
+    into, back = slopes("gelsight-A-II", "tactip"), slopes("tactip", "gelsight-A-II")
+    # measured on these grids: 0.67 -> 1.06 into TacTip (scale 0.64), 1.20 -> 0.82 back (1.47)
+    assert into[0] < 0.75 and 0.9 < into[1] < 1.15 and into[2] < 0.75
+    assert back[0] > 1.1 and 0.75 < back[1] < 0.9 and back[2] > 1.3
