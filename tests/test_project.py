@@ -325,7 +325,8 @@ def test_report_of_the_ci_store(ci_store, tmp_path):
 # in each executor, too slow for the suite
 SAME_IN_EVERY_EXECUTOR = [
     "indenters", "sim_trajectory", "collection_trajectory", "calibration_trajectory", "patterns",
-    "contact_check", "deform[sensor=sim]", "calibrate[sensor=gelsight-r6]", "render[skin=Array1]",
+    "contact_check", "deform[sensor=sim]", "calibrate[sensor=gelsight-r6]", "punch_trajectory",
+    "calibrate_punch[sensor=gelsight-r6]", "render[skin=Array1]",
     "taxels[skin=uskin-3axis]", "markers[skin=Array1]", "features[skin=Array1]",
     "flow_warp[source=Array1,target=Array2]", "m2m_sim", "m2m[fit=twin]",
     "translate_sim[source=Array1,target=Array2]", "translate[source=gelsight-A-I,target=gelsight-A-II]",

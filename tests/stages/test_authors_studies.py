@@ -139,6 +139,8 @@ TWIN_INPUTS = {
     "curves": {"markers": "markers[*]"},
     "transfer": {"source_calibration": "calibrate[sensor={source_spec[body]}]",
                  "target_calibration": "calibrate[sensor={target_spec[body]}]",
+                 "source_punch": "calibrate_punch[sensor={source_spec[body]}]",
+                 "target_punch": "calibrate_punch[sensor={target_spec[body]}]",
                  "target_markers": "markers[skin={target}]"},
     **{s: {"markers": "markers[skin=@members]"} for s in ("homo", "material", "hetero")},
     "control": {"model": "transfer[source={model_pair[0]},target={model_pair[1]},seed=0]",
