@@ -479,8 +479,9 @@ def capture_calibration(*, trajectory: Mapping, sensor: str, spec: Mapping, devi
     `calibrate[sensor]` would compute its twin's.
 
     `trajectory` is the calibration trajectory (the calibration indenter to the trajectory's
-    deepest point and back), pressed every frame to the sensor's max_depth_mm (`spec`, its
-    sensors catalogue entry), as calibrate presses its twin.  `devices`: the robot and an F/T
+    deepest point and back, its shear leg there), pressed every frame to the sensor's
+    max_depth_mm (`spec`, its sensors catalogue entry) and sheared by the sensor's stroke (the
+    trajectory's shift times its shear_scale), as calibrate presses its twin.  `devices`: the robot and an F/T
     sensor (a camera or skin, if listed, is recorded too but not needed).  `session`
     (CALIBRATION_SESSION): name (staging file capture-<name>.h5; default <sensor>-calibration),
     chunk_frames, tool_change.  The device parameters, rate_hz, emulate, staging and
@@ -518,6 +519,11 @@ def capture_calibration(*, trajectory: Mapping, sensor: str, spec: Mapping, devi
     t = {k: np.asarray(trajectory[k]) for k in ("position", "depth", "shift", "phase", "contact_id",
                                                 "indenter_id", "paired", "indenters") if k in trajectory}
     t["movement_id"] = t["contact_id"]              # frame_stride 1 keeps every frame of a contact
+    # the shear leg at the sensor's own stroke, as calibrate presses its twin; a calibration
+    # trajectory's position is its touchdown point, the robot's target moves along the leg
+    t["shift"] = np.asarray(t["shift"], float) * float(spec.get("shear_scale", 1.0))
+    t["position"] = np.array(t["position"], float)
+    t["position"][:, :2] += t["shift"]
     run = {"name": settings["name"] or f"{sensor}-calibration", "contacts_per_indenter": 0,
            "frame_stride": 1, "depth_scale": max_depth / deepest, "max_depth_mm": max_depth,
            "chunk_frames": int(settings["chunk_frames"]), "tool_change": settings["tool_change"]}

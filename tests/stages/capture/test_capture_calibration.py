@@ -140,3 +140,31 @@ def test_the_graph_gathers_captured_calibrations_into_every_transfer():
     assert inst[name].node.source
     transfers = [i for n, i in inst.items() if n.startswith("transfer[")]
     assert all(i.inputs["captured_calibrations"] == {SENSOR: name} for i in transfers)
+
+
+def test_captured_shear_leg_moves_the_robot_at_the_sensors_stroke(ci, calibration_inputs, tmp_path):
+    """The calibration's shear leg (its trajectory holds the touchdown point and the shift apart)
+    is driven by the robot at the sensor's own stroke (shear_scale), as calibrate presses its
+    twin: the F/T reads the twin's shear, and the captured calibration gives genforce_plus's
+    shear_calibration the twin's shear-to-normal ratio."""
+    from stages.capture.session import capture_calibration
+    from stages.force.compensation import shear_ratio
+    from stages.sim.deform import calibrate
+    from stages.sim.trajectory import calibration_trajectory
+    tp = ci["calibration_trajectory"]
+    trajectory = calibration_trajectory(max_depth_mm=tp["max_depth_mm"], n_steps=4, repetitions=1,
+                                        indenter=tp["indenter"], shear_mm=1.0, shear_steps=3)
+    _, meshes = calibration_inputs
+    spec = {**ci["sensors"][SENSOR], "shear_scale": 1.5}
+    chunks, final = drain(capture_calibration(
+        trajectory=trajectory, sensor=SENSOR, spec=spec, devices=["robot", "netft"], session=None, rate_hz=0.0,
+        staging_dir=str(tmp_path), emulate=True, indenters=meshes, materials=ci["materials"], robot={},
+        netft={"retry_s": 0.02, "timeout_s": 0.5}, serial_ft={"retry_s": 0.02, "timeout_s": 0.5}, camera={},
+        xela={}, slcan={}))
+    got = concat(chunks)
+    want = calibrate(indenters=meshes, trajectory=trajectory, sensor=SENSOR, spec=spec, materials=ci["materials"])
+    assert np.abs(want["shift"]).max() == pytest.approx(1.5)
+    np.testing.assert_allclose(got["shift"], want["shift"], atol=1e-6)
+    np.testing.assert_allclose(got["force"], want["force"], atol=1e-3)
+    assert np.abs(got["force"][:, 0]).max() > 0.1                   # the leg reads shear
+    assert shear_ratio(got) == pytest.approx(shear_ratio(want), rel=1e-3)
