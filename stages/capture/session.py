@@ -519,11 +519,12 @@ def capture_calibration(*, trajectory: Mapping, sensor: str, spec: Mapping, devi
     t = {k: np.asarray(trajectory[k]) for k in ("position", "depth", "shift", "phase", "contact_id",
                                                 "indenter_id", "paired", "indenters") if k in trajectory}
     t["movement_id"] = t["contact_id"]              # frame_stride 1 keeps every frame of a contact
-    # the shear leg at the sensor's own stroke, as calibrate presses its twin; a calibration
-    # trajectory's position is its touchdown point, the robot's target moves along the leg
-    t["shift"] = np.asarray(t["shift"], float) * float(spec.get("shear_scale", 1.0))
+    # a calibration trajectory's position is its touchdown point; capture's target is where the
+    # shift moved the tip (a collection's position), at the sensor's stroke as calibrate presses it
+    from stages.sim.deform import _scale_shear
     t["position"] = np.array(t["position"], float)
     t["position"][:, :2] += t["shift"]
+    _scale_shear(t, float(spec.get("shear_scale", 1.0)))
     run = {"name": settings["name"] or f"{sensor}-calibration", "contacts_per_indenter": 0,
            "frame_stride": 1, "depth_scale": max_depth / deepest, "max_depth_mm": max_depth,
            "chunk_frames": int(settings["chunk_frames"]), "tool_change": settings["tool_change"]}

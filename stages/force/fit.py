@@ -199,15 +199,16 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
     reference = np.asarray(translated["reference"])
     force = np.asarray(translated["force"], np.float32)
     rows = run_rows(runs)
-    phase = np.asarray(translated["phase"])
+    identity = src_curves == tgt_curves
+    if not identity:      # the training frames' depths and branches (no depth read without curves)
+        depth = np.asarray(translated["normalised_depth"], float)[rows]
+        loading = loading_mask(np.asarray(translated["phase"])[rows])
     punch = None
     if calibrated and source_punch is not None and target_punch is not None and not calibration_from:
-        punch = plus.punch_scale(force[rows], np.asarray(translated["normalised_depth"], float)[rows],
-                                 loading_mask(phase[rows]), {"source": src_curves, "target": tgt_curves},
-                                 {"source": curves_from_calibration(source_punch),
-                                  "target": curves_from_calibration(target_punch)})
+        punch = 1.0 if identity else plus.punch_scale(
+            force[rows], depth, loading, {"source": src_curves, "target": tgt_curves},
+            {"source": curves_from_calibration(source_punch), "target": curves_from_calibration(target_punch)})
     view = plus.target_view(target_markers, ratios, train_indenters, punch) if additions else None
-    identity = src_curves == tgt_curves
     images = read_runs(translated, "images", runs)
     seqs = make_sequences(images, [force[a:b] for a, b in runs],
                           reference, model_cfg)
@@ -243,9 +244,7 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
     genforce_plus, plus_info = (plus.apply(base, view, additions) if additions
                                 else (genforce_comp, {}))
     plus_info = {**trained, **plus_info}
-    scale = (np.ones(rows.size) if identity else
-             label_scale(np.asarray(translated["normalised_depth"], float)[rows], loading_mask(phase[rows]),
-                         src_curves, tgt_curves))
+    scale = np.ones(rows.size) if identity else label_scale(depth, loading, src_curves, tgt_curves)
     kept, timing = _split_timing(histories, ckpt)
     figures = {"loss": loss_figure(histories, name)}
     if calibrated:
