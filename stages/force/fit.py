@@ -136,7 +136,7 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
                  source_calibration: Mapping | None = None, target_calibration: Mapping | None = None,
                  train_indenters: Sequence[str] | None = None,
                  target_markers: Mapping | None = None, additions: Sequence[str] = (),
-                 rest_noise_length: float = 1.0, source_punch: Mapping | None = None,
+                 source_punch: Mapping | None = None,
                  target_punch: Mapping | None = None,
                  captured_calibrations: Mapping | None = None, checkpoint: str | None = None) -> dict:
     """Node `transfer[source,target]`: regressors on the source's sequences translated into the
@@ -146,12 +146,9 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
       genforce_comp  trained with the labels compensated to the target's material (the paper's
                      compensation, stages.force.compensation);
       genforce_plus  genforce_comp with `additions` (stages.force.plus), which read the
-                     target's reference image and rest frames (`target_markers`) and the
-                     calibrations; with rest_noise (where it changes the translations) a
-                     fine-tune of genforce_comp's weights with its labels on the translations
-                     with the target's rest noise: genforce_comp's schedule, `rest_noise_length`
-                     times as long (at least one step per stage), whose weights the output
-                     keeps as `plus_base`.  punch_calibration reads the two sensors' flat-punch
+                     target's reference image (`target_markers`) and the calibrations:
+                     applied to a copy of genforce_comp's model, nothing retrained.
+                     punch_calibration reads the two sensors' flat-punch
                      calibrations (`source_punch`, `target_punch`: calibrate_punch artifacts), where
                      both are given and neither prism calibration was captured (attrs punch_scale).
 
@@ -174,10 +171,6 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
     from stages.force.train import ContactSequence, fit_two_stage, loss_figure, make_sequences
     name = f"transfer[{source}->{target}]"
     additions = plus.check_additions(additions, name)
-    length = float(rest_noise_length)
-    if not 0.0 < length <= 1.0:
-        from stages.common import InputError
-        raise InputError(f"{name}: plus.rest_noise_length must lie in (0, 1], got {rest_noise_length!r}")
     (source_calibration, target_calibration), calibration_from = calibrations(
         (source_calibration, target_calibration), captured_calibrations)
     if (source_calibration is None) != (target_calibration is None):
@@ -208,7 +201,7 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
         punch = 1.0 if identity else plus.punch_scale(
             force[rows], depth, loading, {"source": src_curves, "target": tgt_curves},
             {"source": curves_from_calibration(source_punch), "target": curves_from_calibration(target_punch)})
-    view = plus.target_view(target_markers, ratios, train_indenters, punch) if additions else None
+    view = plus.target_view(target_markers, ratios, punch) if additions else None
     images = read_runs(translated, "images", runs)
     seqs = make_sequences(images, [force[a:b] for a, b in runs],
                           reference, model_cfg)
@@ -227,23 +220,8 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
             comp_seqs, model_cfg, desc=f"{name} genforce_comp", checkpoint=ckpt,
             label="genforce_comp", **kwargs)
         genforce_comp.set_reference(reference)
-    base, trained = genforce_comp, {}
-    if "rest_noise" in additions:
-        trained["rest_noise"] = plan = plus.rest_noise_plan(translated, view, train_indenters)
-        if plan["applied"]:
-            noisy = [ContactSequence(prepare(plus.rest_noise(frames, view, (int(seed), k)), reference, model_cfg),
-                                     comp[a:b])
-                     for k, (frames, (a, b)) in enumerate(zip(images, runs))]
-            short = {**kwargs, "seed": int(seed) + 2,
-                     "steps": max(1, round(int(steps) * length)),
-                     "finetune_steps": max(1, round(int(finetune_steps) * length)) if int(finetune_steps) else 0}
-            base, histories["genforce_plus"] = fit_two_stage(
-                noisy, genforce_comp.config, init=to_arrays(genforce_comp), desc=f"{name} genforce_plus",
-                checkpoint=ckpt, label="genforce_plus", **short)
-            base.set_reference(reference)
-    genforce_plus, plus_info = (plus.apply(base, view, additions) if additions
+    genforce_plus, plus_info = (plus.apply(genforce_comp, view, additions) if additions
                                 else (genforce_comp, {}))
-    plus_info = {**trained, **plus_info}
     scale = np.ones(rows.size) if identity else label_scale(depth, loading, src_curves, tgt_curves)
     kept, timing = _split_timing(histories, ckpt)
     figures = {"loss": loss_figure(histories, name)}
@@ -253,11 +231,9 @@ def fit_transfer(*, translated: Mapping, source: str, target: str, config: Mappi
                                                 f"compensation {source} -> {target}")
     return {"genforce": to_arrays(genforce), "genforce_comp": to_arrays(genforce_comp),
             "genforce_plus": to_arrays(genforce_plus),
-            **({"plus_base": to_arrays(base)} if base is not genforce_comp else {}),
             "attrs": {"config": genforce.config,
                       "configs": {"genforce_comp": genforce_comp.config,
-                                  "genforce_plus": genforce_plus.config,
-                                  **({"plus_base": base.config} if base is not genforce_comp else {})},
+                                  "genforce_plus": genforce_plus.config},
                       "train": train, "source": source, "target": target,
                       "compensation_identity": bool(identity), "curves": curves, "shear_ratios": ratios,
                       "punch_scale": punch,

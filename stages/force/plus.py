@@ -1,31 +1,13 @@
 """genforce_plus: the paper's genforce_comp model with our additions, each label-free.
 
 Every addition reads only what a lab has without a force label of the target: the target's
-no-contact image, its rest frames (the robot's record says where the indenter was off the skin)
-and the two sensors' material calibrations (TargetView).  One addition is applied in training
-(TRAINED): a fine-tune of genforce_comp's weights with its labels on the translations that the
-addition changes (genforce_comp's schedule, plus.rest_noise_length times as long); the others
-after training, to a copy of that model (of genforce_comp where nothing is trained).  So the
-ablation (stages.force.study.ablation_study) can take each one away in turn from models of
-several seeds without retraining: the transfer keeps the trained weights (`plus_base`) beside
-genforce_comp's.
+no-contact image and the two sensors' material calibrations (TargetView).  Each is applied
+after training, to a copy of genforce_comp's model, so the ablation
+(stages.force.study.ablation_study) can take each one away in turn from models of several
+seeds without retraining.
 
 The additions, in the order they are applied (ADDITIONS):
 
-  rest_noise    the translations carry the target's rest noise.  A translator draws a frame the
-                way the target's frames look on average: where nothing moved it draws the
-                target's reference exactly, while a real frame at rest differs from it in the
-                pixels that its camera noise tips over the segmentation threshold (about 0.1%
-                of a GelSight frame's).  A model trained on the clean translations reads that
-                noise as force, about as much as the light contact a grasp needs.  Each
-                translated frame takes, in the pixels where one of the target's rest frames
-                (drawn at random) differs from the target's reference, that rest frame's
-                values.  Rest frames: the release frames at depth 0 of the target's
-                contacts of the training indenters.  Translations that already carry as much
-                noise (a translation between skins of one marker pattern is the source's own
-                frames, noise and all) are left as they are, and so is a target without rest
-                frames (its collection records no depth): genforce_plus then starts from
-                genforce_comp's weights.
   mirror_shear  the model reads a frame's shear as the odd part of its readings of the frame and
                 of the frame's mirror images under which the target's reference looks the same
                 (stages.force.model, mirror_read "auto"): the even part is error.
@@ -61,33 +43,27 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-ADDITIONS = ("rest_noise", "mirror_shear", "shear_calibration", "punch_calibration")
-TRAINED = ("rest_noise",)          # applied in training (a fine-tune of genforce_comp)
-NOISE_SHARE = 0.5                  # translations whose rest frames differ from the target's reference
-                                   # in at least this share of the target's rest noise carry it already
+ADDITIONS = ("mirror_shear", "shear_calibration", "punch_calibration")
 
 
 @dataclass
 class TargetView:
     """What the additions read of the target, none of it a force label: its no-contact image
     (H,W), the shear-to-normal ratios of the source's and the target's calibrations
-    ({"source", "target"}; None: either has none), its rest frames (K,H,W) (none: (0,H,W))
-    and the punch calibrations' rescaling of the compensated labels (punch_scale; None: either
-    sensor has no punch calibration)."""
+    ({"source", "target"}; None: either has none) and the punch calibrations' rescaling of the
+    compensated labels (punch_scale; None: either sensor has no punch calibration)."""
     reference: np.ndarray
     shear_ratios: Mapping | None = None
-    rest: np.ndarray | None = None
     punch_scale: float | None = None
 
 
 def target_view(target_markers: Mapping, shear_ratios: Mapping | None = None,
-                indenters: Sequence[str] | None = None, punch_scale: float | None = None) -> TargetView:
-    """The TargetView of the target's own collection `target_markers`: its reference image and
-    its rest frames among the contacts of `indenters` (None: all)."""
+                punch_scale: float | None = None) -> TargetView:
+    """The TargetView of the target's own collection `target_markers`: its reference image."""
     if target_markers is None or "reference" not in target_markers:
         raise ValueError("genforce_plus needs the target's own collection (target_markers) for its reference image")
     reference = np.asarray(target_markers["reference"])
-    return TargetView(reference, shear_ratios, rest_frames(target_markers, indenters, reference), punch_scale)
+    return TargetView(reference, shear_ratios, punch_scale)
 
 
 def punch_scale(force, normalised_depth, loading, prism: Mapping, punch: Mapping) -> float:
@@ -103,59 +79,6 @@ def punch_scale(force, normalised_depth, loading, prism: Mapping, punch: Mapping
     return float(np.sum(by["prism"] * by["punch"]) / norm) if norm > 0 else 1.0
 
 
-def rest_rows(art: Mapping, indenters: Sequence[str] | None = None) -> np.ndarray:
-    """The rows of `art`'s rest frames: release frames at depth 0 (the robot's record: the
-    indenter is off the skin) of its contacts of `indenters` (None: all); no rows where `art`
-    records no `depth` or `phase`."""
-    from stages.force.compensation import UNLOADING_PHASES
-    from stages.force.data import contact_runs, run_rows
-    if "depth" not in art or "phase" not in art:
-        return np.zeros(0, int)
-    rows = run_rows(contact_runs(art, indenters))
-    depth, phase = np.asarray(art["depth"])[rows], np.asarray(art["phase"])[rows]
-    return rows[np.isin(phase, UNLOADING_PHASES) & (depth == 0)]
-
-
-def rest_frames(art: Mapping, indenters: Sequence[str] | None, reference: np.ndarray) -> np.ndarray:
-    """`art`'s rest frames (K,H,W) (rest_rows); (0,H,W) of `reference`'s shape where it has none."""
-    rows = rest_rows(art, indenters)
-    if not rows.size:
-        return np.zeros((0,) + reference.shape, reference.dtype)
-    return np.stack([np.asarray(art["images"][int(r)]) for r in rows])
-
-
-def noise_share(frames: np.ndarray, reference: np.ndarray) -> float:
-    """The mean share of pixels in which `frames` (K,H,W) differ from `reference` (0 for none)."""
-    return float(np.mean(frames != reference[None])) if len(frames) else 0.0
-
-
-def rest_noise(images: np.ndarray, view: TargetView, seed) -> np.ndarray:
-    """`images` (N,H,W), each taking, where a random one of view.rest differs from
-    view.reference, that rest frame's values (rest_noise in the module's docstring); `seed`
-    (an int or a tuple of ints) draws the rest frames."""
-    if view.rest is None or not len(view.rest):
-        raise ValueError("rest_noise: the target has no rest frames")
-    rng = np.random.default_rng(seed)
-    pick = rng.integers(0, len(view.rest), len(images))
-    masks = view.rest != view.reference[None]
-    out = np.array(images, copy=True)
-    for k, j in enumerate(pick):
-        out[k][masks[j]] = view.rest[j][masks[j]]
-    return out
-
-
-def rest_noise_plan(translated: Mapping, view: TargetView, indenters: Sequence[str] | None) -> dict:
-    """Whether rest_noise changes these translations: {"applied", "rest_frames", "target_share",
-    "translation_share"} (the rest noise's pixel shares of the target's rest frames and of the
-    translations' own rest frames)."""
-    rest = view.rest if view.rest is not None else np.zeros((0,) + view.reference.shape)
-    own = rest_frames(translated, indenters, view.reference)
-    target, trans = noise_share(rest, view.reference), noise_share(own, view.reference)
-    applied = bool(len(rest) and target > 0 and trans < NOISE_SHARE * target)
-    return {"applied": applied, "rest_frames": int(len(rest)), "target_share": round(target, 8),
-            "translation_share": round(trans, 8)}
-
-
 def check_additions(additions: Sequence[str], name: str) -> list[str]:
     """The additions as a list in ADDITIONS order; an unknown or repeated one is an InputError."""
     from stages.common import InputError
@@ -169,11 +92,11 @@ def check_additions(additions: Sequence[str], name: str) -> list[str]:
 
 
 def apply(model, target: TargetView, additions: Sequence[str]) -> tuple[object, dict]:
-    """A copy of `model` with the after-training ones of `additions` applied in ADDITIONS order
-    (a TRAINED one is in the weights already); (model, info per addition applied here)."""
+    """A copy of `model` with `additions` applied in ADDITIONS order; (model, info per
+    addition)."""
     out = copy.deepcopy(model)
     info: dict = {}
-    for name in [a for a in ADDITIONS if a in set(additions) and a not in TRAINED]:
+    for name in [a for a in ADDITIONS if a in set(additions)]:
         if name == "mirror_shear":
             out.config["mirror_read"] = "auto"
             info[name] = {"mirrors": list(out.mirrors_for(target.reference))}

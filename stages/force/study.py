@@ -194,9 +194,8 @@ def ablation_study(*, homo: Mapping, material: Mapping, hetero: Mapping, transfe
     For every study (`homo`, `material`, `hetero`: its groups of pairs) and every seed's
     genforce_comp model of each pair (the transfers of `force.seeds`, at least 3), genforce_plus is
     rebuilt with all `additions` and with each one left out in turn (stages.force.plus.apply,
-    on the target's view the transfer read; a variant with a TRAINED addition starts from the
-    transfer's `plus_base` weights, the others from genforce_comp's), and scored on the target's
-    validation contacts.
+    to genforce_comp's model on the target's view the transfer read), and scored on the
+    target's validation contacts.
     With m(s, v) the mean over the study's pairs of the validation MAE (total) of variant v
     from seed s:
 
@@ -272,18 +271,14 @@ def _ablation(studies, transfer, markers, val_indenters, additions) -> dict:
             val = sets[t]
             view = plus.target_view(markers[t], info.get("shear_ratios"), punch_scale=info.get("punch_scale"))
             models = [load_model(a, "genforce_comp") for _, a in trained]
-            # a TRAINED addition's weights (plus_base; genforce_comp's where it changed nothing)
-            bases = [load_model(a, "plus_base") if "plus_base" in (attrs_of(a).get("configs") or {}) else m
-                     for (_, a), m in zip(trained, models)]
             seen = scores["mae_total"]["all"]
             if seen and len(models) != len(seen[0]):
                 raise ValueError(f"ablation[{study}]: {s} -> {t} has {len(models)} seed models, the "
                                  f"study's other pairs {len(seen[0])}")
             for v, used in variants.items():
-                start = bases if set(used) & set(plus.TRAINED) else models
                 scored = [force_metrics(predict_contacts(plus.apply(model, view, used)[0], val["images"],
                                                          val["contact_id"], val["reference"]), val["force"])
-                          for model in start]
+                          for model in models]
                 for m in ABLATION_METRICS:
                     scores[m][v].append([x.get(m, np.nan) for x in scored])
         tables = {m: {v: np.asarray(by_v[v], float).T for v in variants}      # (seeds, pairs)

@@ -48,7 +48,7 @@ def select_frames(trajectory: Mapping, contacts_per_indenter: int = 0, frame_str
     name -> count) gives some indenters another count (the validation indenters more, so
     that the choices made on them rest on more contacts).  frame_stride > 1 keeps
     every stride-th sample of each movement counted back from its end, so every movement's
-    target is kept.  The pick depends on the trajectory only, so every sensor simulated on the
+    target is kept, and every contact's first frame (its start, at rest).  The pick depends on the trajectory only, so every sensor simulated on the
     same trajectory gets the same frames (location-paired).
     """
     t = _arrays(trajectory, ("contact_id", "indenter_id", "movement_id"))
@@ -69,7 +69,8 @@ def select_frames(trajectory: Mapping, contacts_per_indenter: int = 0, frame_str
         move = t["movement_id"][frames]
         ends = np.append(np.flatnonzero(np.diff(move)), move.size - 1)  # last row of each movement
         pos = np.arange(move.size)
-        frames = frames[(ends[np.searchsorted(ends, pos)] - pos) % int(frame_stride) == 0]
+        first = np.r_[True, np.diff(contact[frames]) != 0]
+        frames = frames[((ends[np.searchsorted(ends, pos)] - pos) % int(frame_stride) == 0) | first]
     return frames
 
 

@@ -111,7 +111,11 @@ def collection_trajectory(*, n_points: int = 5, point_offset_mm: float = 3.0,
     Each movement is a straight line in (shift, depth) sampled at ``rate_hz`` with
     n = max(ceil(length * rate / speed), n_paired) samples at fractions 1/n .. 1 (the target
     itself is sampled last), followed by ``dwell_samples`` samples held at the target. The
-    last ``n_paired`` samples of each movement are ``paired``. The defaults give about 168k
+    last ``n_paired`` samples of each movement are ``paired``. The press that starts a contact
+    is also sampled at fraction 0, its start on the untouched surface: every contact's first
+    frame is a no-contact frame, as every contact of the authors' recordings starts with one
+    (its frame 0000, which their M2M code also uses as the untouched frame) and as a force
+    model in use reads the skin at rest before anything touches it. The defaults give about 168k
     frames for 18 indenters (the paper collected ~180k per sensor). TacTip: depth_step_mm=1.125,
     max_depth_mm=4.5, rate_hz=20.
 
@@ -158,7 +162,7 @@ def collection_trajectory(*, n_points: int = 5, point_offset_mm: float = 3.0,
     for m, (s0, d0, s1, d1, ph, k, lv, newc) in enumerate(moves):
         length = math.hypot(float(np.linalg.norm(s1 - s0)), d1 - d0)
         n = max(int(math.ceil(length / step - 1e-9)), n_paired)
-        f = np.concatenate([np.arange(1, n + 1) / n, np.ones(dwell_samples)])
+        f = np.concatenate([np.arange(0 if newc else 1, n + 1) / n, np.ones(dwell_samples)])
         cnt = f.size
         parts["shift"].append(s0 + f[:, None] * (s1 - s0))
         parts["depth"].append(d0 + f * (d1 - d0))

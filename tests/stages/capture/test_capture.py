@@ -40,7 +40,8 @@ def test_forces_positions_and_images_follow_the_twin(baseline, twin):
     data, final = baseline
     ref, deform = twin
     n = len(ref["force"])
-    assert n == 48 and data["force"].shape == (n, 3) and data["force"].dtype == np.float32
+    # 2 contacts of 25 frames: the untouched start, the 0.5 mm press, 2 x 2 shear legs, the release
+    assert n == 50 and data["force"].shape == (n, 3) and data["force"].dtype == np.float32
     np.testing.assert_array_equal(data["frame"], ref["frame"])
     # NetF/T counts (1e6 per N) after the tare of a 0.12/-0.08/0.35 N bias: micro-newton agreement
     np.testing.assert_allclose(data["force"], ref["force"], atol=2e-6)
@@ -83,12 +84,12 @@ def _interrupted(run_capture, staging, match, **faults):
 
 def test_disconnect_keeps_complete_contacts_and_resumes(run_capture, baseline, tmp_path):
     data, _ = baseline
-    # 8 tare + 24 frames for the first contact, 8 tare + 5 frames of the second, then silence
+    # 8 tare + 25 frames for the first contact, 8 tare + 4 frames of the second, then silence
     msg, staged, rows = _interrupted(run_capture, tmp_path, r"^netft 127\.0\.0\.1:\d+: no reply for 0\.\d s after "
                                      r"45 samples \(trajectory frame 29, contact 1\)$",
                                      netft={"faults": {"disconnect_after": 45}})
-    assert rows == 24 and len(staged["force"]) == 24
-    np.testing.assert_array_equal(staged["force"], data["force"][:24])
+    assert rows == 25 and len(staged["force"]) == 25
+    np.testing.assert_array_equal(staged["force"], data["force"][:25])
     resumed, final = run_capture(tmp_path, netft={"timeout_s": 1.0})   # patience may change
     _same(resumed, data)
     assert final["attrs"]["sessions"] == 2 and os.listdir(tmp_path) == []
@@ -141,13 +142,13 @@ def test_camera_that_stops_delivering_is_an_error(run_capture, tmp_path):
 
 
 def test_a_camera_lost_at_the_end_of_a_contact_does_not_commit_it(run_capture, baseline, tmp_path):
-    """The camera serves 23 frames (the reference and the first contact's first 22 rows) and no
+    """The camera serves 24 frames (the reference and the first contact's first 23 rows) and no
     more: the first contact would end in two repeated frames marked invalid.  It is not
     committed; the resume captures it again, so the dataset equals an uninterrupted one."""
     data, _ = baseline
-    msg, staged, rows = _interrupted(run_capture, tmp_path, r"^camera 0: no frame for 10 reads after 25 samples "
+    msg, staged, rows = _interrupted(run_capture, tmp_path, r"^camera 0: no frame for 10 reads after 26 samples "
                                                             r"\(end of contact 0, which is captured again\)$",
-                                     camera={"faults": {"disconnect_after": 23}},
+                                     camera={"faults": {"disconnect_after": 24}},
                                      netft={"timeout_s": 5.0})    # the camera's error, not a slow F/T's
     assert rows == 0 and len(staged["raw"]) == 0
     resumed, final = run_capture(tmp_path, netft={"timeout_s": 5.0})
@@ -157,12 +158,12 @@ def test_a_camera_lost_at_the_end_of_a_contact_does_not_commit_it(run_capture, b
 
 def test_protective_stop_then_resume(run_capture, baseline, tmp_path):
     data, _ = baseline
-    # moves: clearance, approach, 24 frames, lift (27); second contact (another indenter):
-    # clearance, approach, then its 9th frame is move 38
+    # moves: clearance, approach, 25 frames, lift (28); second contact (another indenter):
+    # clearance, approach, then its 8th frame is move 38
     msg, staged, rows = _interrupted(run_capture, tmp_path, r"^robot twin: protective stop at move 38 "
                                                             r"\(trajectory frame 32, contact 1\)$",
                                      robot={"faults": {"protective_stop_at": 38}})
-    assert rows == 24
+    assert rows == 25
     resumed, final = run_capture(tmp_path)
     _same(resumed, data)
     assert final["attrs"]["sessions"] == 2

@@ -39,20 +39,3 @@ def contact_artifact(images, forces, indenter_names, size=32):
             "contact_id": np.repeat(np.arange(len(n)), n).astype(np.int32),
             "indenter_id": np.repeat([names.index(s) for s in indenter_names], n).astype(np.int16),
             "frame": np.arange(sum(n)), "indenters": np.asarray(names, object)}
-
-
-def with_rest_frames(art, pixels: int = 6, seed: int = 11):
-    """`art` whose contacts end at rest: each contact's last frame released to depth 0 and drawn
-    as the reference with `pixels` camera-noise pixels tipped over (the target's rest frames)."""
-    out = {k: np.array(v, copy=True) for k, v in art.items()}
-    ends = np.r_[np.flatnonzero(np.diff(out["contact_id"])), len(out["contact_id"]) - 1]
-    out["depth"] = np.asarray(out["normalised_depth"], np.float64) * 2.0
-    out["depth"][ends] = 0.0
-    out["phase"][ends] = 3
-    rng = np.random.default_rng(seed)
-    for e in ends:
-        frame = np.array(out["reference"], copy=True)
-        flat = rng.choice(frame.size, pixels, replace=False)
-        frame.flat[flat] = 255 - frame.flat[flat]
-        out["images"][e] = frame
-    return out

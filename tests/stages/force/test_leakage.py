@@ -9,7 +9,7 @@ labels, must change.
 """
 import numpy as np
 import pytest
-from force_synthetic import contact_artifact, with_rest_frames
+from force_synthetic import contact_artifact
 
 from stages.force import plus
 from stages.force.fit import fit_own, fit_transfer
@@ -70,7 +70,7 @@ def _chain(source, target, tiny_config):
     preds["source_only"] = predict_contacts(load_model(own["S"]), test["images"], test["contact_id"],
                                             test["reference"])
     arrays = {"m2m": tuned["weights"], "translated": {"images": translated["images"]},
-              **{m: transfer[m] for m in ("genforce", "genforce_comp", "genforce_plus", "plus_base") if m in transfer},
+              **{m: transfer[m] for m in ("genforce", "genforce_comp", "genforce_plus")},
               "source_only": own["S"]["weights"]}
     return arrays, preds, own["T"]["weights"], transfer["attrs"]
 
@@ -87,7 +87,6 @@ def worlds(blobs, tiny_config):
         # the target: another look (inverted markers) and a stiffer skin (its own labels 1.6x)
         target = contact_artifact([255 - im for im in images], [1.6 * f for f in forces], names)
         target["reference"] = np.full((32, 32), 255, np.uint8)
-        target = with_rest_frames(target)          # its contacts end at rest: rest_noise trains
         return {how: _chain(source, _poisoned(target, how), tiny_config) for how in ("clean", "nan", "permuted")}
     finally:
         monkey.undo()
@@ -104,7 +103,6 @@ def test_no_method_but_the_oracle_reads_the_targets_labels(worlds, how):
         np.testing.assert_array_equal(pred, poisoned[1][m], err_msg=f"{how}: predictions of {m}")
     assert clean[3] == poisoned[3]                  # the transfer's attrs: histories, gains, curves
     assert clean[3]["plus"]["additions"] == list(plus.ADDITIONS)
-    assert clean[3]["plus"]["rest_noise"]["applied"] is True and "plus_base" in clean[0]
     assert clean[3]["plus"]["shear_calibration"]["scale"] == pytest.approx(0.4)     # 0.2 / 0.5
     assert clean[3]["plus"]["punch_calibration"]["scale"] == pytest.approx(1.25)    # 2.4 / 1.2 over 1.6
     # the oracle trains on the target's labels: the same change alters it

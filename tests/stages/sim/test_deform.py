@@ -82,7 +82,9 @@ def test_pressing_force_sign(gelsight):
     force, depth, p = _cat(chunks, "force"), _cat(chunks, "depth"), _cat(chunks, "pressure")
     pressed = depth > 0
     assert np.all(force[pressed, 2] < 0)                       # the paper's sign
-    assert np.all(force[~pressed] == 0) and (~pressed).sum() == 4    # each release ends at 0
+    assert np.all(force[~pressed] == 0) and (~pressed).sum() == 8    # each contact starts and ends at 0
+    first = np.r_[True, np.diff(_cat(chunks, "contact_id")) != 0]
+    assert np.all(depth[first] == 0) and np.all(force[first] == 0)   # the start: untouched
     assert np.all(p[~pressed] == 0) and np.all(p >= 0)
     uz = _cat(chunks, "displacement")[..., 2]
     assert np.all(uz.min(axis=(1, 2))[pressed] < 0)            # the pad sinks under the indenter
@@ -160,6 +162,12 @@ def test_select_frames():
     shear = tr["phase"][frames] == 1
     assert np.all(np.unique(move[shear], return_counts=True)[1] == 3)
     assert select_frames(tr, 0, 1).size == tr["depth"].size
+    # every contact's first frame, its untouched start, is kept at any stride (a 0.25 mm press
+    # is 7 samples from the start: a stride of 9 from its end alone would drop it)
+    starts = np.flatnonzero(np.r_[True, np.diff(tr["contact_id"]) != 0])
+    kept = np.intersect1d(starts, frames)
+    assert kept.size == len(np.unique(tr["contact_id"][frames])) and np.all(tr["depth"][kept] == 0)
+    assert np.all(np.isin(kept, frames)) and not tr["paired"][kept].any()
     # the validation indenters may get more contacts: the others keep theirs, frame for frame
     more = select_frames(tr, contacts_per_indenter=3, frame_stride=9, contacts_of={"cone": 6})
     cone = tr["indenter_id"] == ALL_INDENTERS.index("cone")

@@ -76,6 +76,20 @@ def test_collection_structure(coll):
     np.testing.assert_allclose(np.diff(tr["time"]), 1 / 40.0)
 
 
+def test_every_contact_starts_on_the_untouched_surface(coll):
+    """A contact's first frame is the press's start at depth 0 (the authors' frame 0000), not
+    paired (M2M pairs the last frames of each movement); the next frames press in."""
+    first = np.flatnonzero(np.r_[True, np.diff(coll["contact_id"]) != 0])
+    assert first.size == len(np.unique(coll["contact_id"])) == 40
+    assert np.all(coll["depth"][first] == 0) and np.all(coll["phase"][first] == 0)
+    assert not coll["paired"][first].any()
+    assert np.all(coll["depth"][first + 1] > 0)
+    # the 0.25 mm press: start, then ceil(0.25 / (1.5 / 40)) = 7 samples, the last at the level
+    level = coll["depth_level"][first] == 0.25
+    press = (coll["movement_id"] == coll["movement_id"][first[level][0]])
+    np.testing.assert_allclose(coll["depth"][press], np.arange(8) / 7 * 0.25)
+
+
 def test_collection_press_and_release_have_no_shift(coll):
     still = np.isin(coll["phase"], (0, 3))
     assert np.all(coll["shift"][still] == 0)
