@@ -48,8 +48,9 @@ def select_frames(trajectory: Mapping, contacts_per_indenter: int = 0, frame_str
     name -> count) gives some indenters another count (the validation indenters more, so
     that the choices made on them rest on more contacts).  frame_stride > 1 keeps
     every stride-th sample of each movement counted back from its end, so every movement's
-    target is kept, and every contact's first frame (its start, at rest).  The pick depends on the trajectory only, so every sensor simulated on the
-    same trajectory gets the same frames (location-paired).
+    target is kept, and every contact's first frame (its start, at rest).  The pick depends on
+    the trajectory only, so every sensor simulated on the same trajectory gets the same frames
+    (location-paired).
     """
     t = _arrays(trajectory, ("contact_id", "indenter_id", "movement_id"))
     contact, indenter = t["contact_id"], t["indenter_id"]
